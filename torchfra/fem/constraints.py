@@ -1,0 +1,173 @@
+"""Kinematic constraints as a map from independent unknowns ``a`` to nodal displacements ``u``.
+
+    u = T a + lambda u_presc + sum_bodies (R(theta) - I) (X - X_ref)   on the rigid nodes
+
+- clamped dofs: zero; prescribed dofs: ``lambda * value`` (the load factor scales them);
+- embedded nodes (fibers): ``u_f = sum_h N_h(xi_f) u_h`` with host shape functions, a linear
+  constraint even at finite strain (rows of ``T``);
+- rigid node sets (a face that stays flat and undeformed): 6 unknowns per body, a translation
+  ``u_ref`` (rows of ``T``) and a rotation vector ``theta`` with the exact finite rotation
+  ``R = exp([theta]x)`` (Rodrigues). Its first and second derivatives come from torch.func.
+
+Reduced residual ``r_a = J^T r_u`` and tangent ``K_a = J^T K_u J + sum_i r_i . d2u_i/da2`` with
+``J = du/da``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+from torch.func import hessian, jacfwd, vmap
+
+
+def _skew(t: torch.Tensor) -> torch.Tensor:
+    z = torch.zeros_like(t[..., 0])
+    return torch.stack(
+        [
+            torch.stack([z, -t[..., 2], t[..., 1]], -1),
+            torch.stack([t[..., 2], z, -t[..., 0]], -1),
+            torch.stack([-t[..., 1], t[..., 0], z], -1),
+        ],
+        -2,
+    )
+
+
+def rotation_matrix(theta: torch.Tensor) -> torch.Tensor:
+    """Rodrigues ``exp([theta]x)`` for theta (3,), smooth (to all orders used here) at theta = 0."""
+    a = (theta * theta).sum()
+    small = a < 1e-8
+    a_safe = torch.where(small, torch.ones_like(a), a)
+    s = torch.sqrt(a_safe)
+    A = torch.where(small, 1 - a / 6 + a * a / 120, torch.sin(s) / s)
+    B = torch.where(small, 0.5 - a / 24 + a * a / 720, (1 - torch.cos(s)) / a_safe)
+    W = _skew(theta)
+    return torch.eye(3, dtype=theta.dtype, device=theta.device) + A * W + B * (W @ W)
+
+
+@dataclass
+class RigidBody:
+    nodes: np.ndarray  # (k,) node indices
+    X_ref: np.ndarray  # (3,)
+    columns: np.ndarray  # (6,) reduced indices: 3 translations, 3 rotations
+
+
+class DofMap:
+    """Built by ``Model.finalize``; see the module docstring for the map."""
+
+    def __init__(self, n_nodes: int, clamped: np.ndarray, prescribed: dict[int, float],
+                 rigid_sets: list[np.ndarray], embedded: list[tuple[int, np.ndarray, np.ndarray]],
+                 X: np.ndarray, dtype=torch.float64):
+        n_full = 3 * n_nodes
+        self.n_full = n_full
+        role = np.zeros(n_full, dtype=np.int64)  # 0 free, 1 fixed, 2 rigid, 3 embedded
+        role[clamped] = 1
+        role[list(prescribed)] = 1
+        for nodes in rigid_sets:
+            d = (3 * nodes[:, None] + np.arange(3)).ravel()
+            if np.any(role[d]):
+                raise ValueError("a rigid node set overlaps clamped, prescribed or another rigid set's nodes")
+            role[d] = 2
+        for node, _, _ in embedded:
+            if np.any(role[3 * node : 3 * node + 3]):
+                raise ValueError(f"embedded node {node} is also clamped, prescribed or rigid")
+            role[3 * node : 3 * node + 3] = 3
+        free = np.flatnonzero(role == 0)
+        u_presc = np.zeros(n_full)
+        for d, v in prescribed.items():
+            u_presc[d] = v
+        col_of = -np.ones(n_full, dtype=np.int64)
+        col_of[free] = np.arange(free.size)
+        n_red = free.size
+        rows, cols, vals = [free], [col_of[free]], [np.ones(free.size)]
+        self.bodies: list[RigidBody] = []
+        for nodes in rigid_sets:
+            columns = np.arange(n_red, n_red + 6)
+            n_red += 6
+            self.bodies.append(RigidBody(nodes, X[nodes].mean(axis=0), columns))
+            for c in range(3):
+                rows.append(3 * nodes + c)
+                cols.append(np.full(nodes.size, columns[c]))
+                vals.append(np.ones(nodes.size))
+        for node, hosts, weights in embedded:
+            host_dofs = 3 * hosts[:, None] + np.arange(3)
+            if np.any(role[host_dofs] >= 2):
+                raise ValueError(f"embedded node {node}: its host nodes must be free or clamped, not rigid or embedded")
+            for c in range(3):
+                hd = host_dofs[:, c]
+                keep = role[hd] == 0
+                rows.append(np.full(int(keep.sum()), 3 * node + c))
+                cols.append(col_of[hd[keep]])
+                vals.append(weights[keep])
+                u_presc[3 * node + c] = weights @ u_presc[hd]
+        self.n_red = n_red
+        self.T = sp.csr_matrix(
+            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n_full, n_red)
+        )
+        self._T_torch = torch.sparse_csr_tensor(
+            torch.as_tensor(self.T.indptr), torch.as_tensor(self.T.indices), torch.as_tensor(self.T.data, dtype=dtype),
+            size=self.T.shape,
+        )
+        self._TT_torch = None
+        self.u_presc = torch.as_tensor(u_presc, dtype=dtype)
+        self.fixed = np.flatnonzero(role == 1)
+        self.dtype = dtype
+        for b in self.bodies:
+            b.dX = torch.as_tensor(X[b.nodes] - b.X_ref, dtype=dtype)
+
+    # -- maps --------------------------------------------------------------------------------------
+    def expand(self, a: torch.Tensor, load_factor: torch.Tensor) -> torch.Tensor:
+        """a: (N, n_red), load_factor: (N,) -> u: (N, n_full)."""
+        u = (self._T_torch @ a.T).T + load_factor[:, None] * self.u_presc
+        for b in self.bodies:
+            R = vmap(rotation_matrix)(a[:, b.columns[3:]])
+            rot = torch.einsum("nij,kj->nki", R - torch.eye(3, dtype=a.dtype), b.dX)
+            idx = torch.as_tensor(3 * b.nodes[:, None] + np.arange(3)).ravel()
+            u = u.index_add(1, idx, rot.reshape(a.shape[0], -1))
+        return u
+
+    def reduce(self, r_full: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        """J^T r: (N, n_full) -> (N, n_red)."""
+        if self._TT_torch is None:
+            TT = self.T.T.tocsr()
+            self._TT_torch = torch.sparse_csr_tensor(
+                torch.as_tensor(TT.indptr), torch.as_tensor(TT.indices), torch.as_tensor(TT.data, dtype=self.dtype),
+                size=TT.shape,
+            )
+        r = (self._TT_torch @ r_full.T).T.clone()
+        for b, dRdt in zip(self.bodies, self._rotation_jacobians(a)):
+            r_nodes = r_full[:, torch.as_tensor(3 * b.nodes[:, None] + np.arange(3))]  # (N, k, 3)
+            r[:, b.columns[3:]] += torch.einsum("nijt,kj,nki->nt", dRdt, b.dX, r_nodes)
+        return r
+
+    def _rotation_jacobians(self, a):
+        return [vmap(jacfwd(rotation_matrix))(a[:, b.columns[3:]]) for b in self.bodies]
+
+    def jacobian(self, a: torch.Tensor) -> list[sp.csr_matrix]:
+        """J = du/da per member (scipy CSR)."""
+        if not self.bodies:
+            return [self.T] * a.shape[0]
+        rows, cols, vals = [], [], []
+        for b, dRdt in zip(self.bodies, self._rotation_jacobians(a)):
+            d = np.einsum("nijt,kj->nkit", dRdt.numpy(), b.dX.numpy())  # (N, k, 3, 3)
+            rows.append(np.repeat((3 * b.nodes[:, None] + np.arange(3)).ravel(), 3))
+            cols.append(np.tile(b.columns[3:], 3 * b.nodes.size))
+            vals.append(d.reshape(a.shape[0], -1))
+        r, c = np.concatenate(rows), np.concatenate(cols)
+        v = np.concatenate(vals, axis=1)
+        return [self.T + sp.csr_matrix((v[n], (r, c)), shape=self.T.shape) for n in range(a.shape[0])]
+
+    def geometric_stiffness(self, a: torch.Tensor, r_full: torch.Tensor) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per body, ``(columns, H)`` with H (N, 3, 3) = d2/dtheta2 of sum_i r_i . R(theta) dX_i."""
+        out = []
+        for b in self.bodies:
+            r_nodes = r_full[:, torch.as_tensor(3 * b.nodes[:, None] + np.arange(3))]
+            M = torch.einsum("nki,kj->nij", r_nodes, b.dX)
+
+            def work(theta, m):
+                return (rotation_matrix(theta) * m).sum()
+
+            H = vmap(hessian(work))(a[:, b.columns[3:]], M)
+            out.append((b.columns[3:], H.numpy()))
+        return out

@@ -1,0 +1,228 @@
+"""A finite element model: mesh, energy terms, constraints; evaluated for N members at once."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+
+from .assembly import SparsePattern
+from .constraints import DofMap
+from .mesh import Mesh, MeshError
+from .terms import Term
+
+
+@dataclass
+class Evaluation:
+    """Model state of N members: reduced residual (N, n_red), its scale (N,) for relative
+    convergence tests, admissibility (N,), total potential (N,) if asked, reduced tangents if asked."""
+
+    residual: torch.Tensor
+    force_scale: torch.Tensor
+    ok: torch.Tensor
+    energy: torch.Tensor | None = None
+    tangents: list[sp.csr_matrix] | None = None
+
+
+class Model:
+    """Mesh + terms + constraints.
+
+    >>> model = Model(mesh)
+    >>> model.add(Hex20Solid(mesh, NeoHookean()))
+    >>> model.clamp("zmin"); model.rigid("zmax")
+    >>> model.add(FollowerPressure(mesh, "ymax", pressure="P"))
+    """
+
+    def __init__(self, mesh: Mesh, dtype=torch.float64, memory_budget_mb: float = 1024.0):
+        self.mesh, self.dtype = mesh, dtype
+        self.X = mesh.nodes.copy()
+        self.terms: list[Term] = []
+        self._clamped: list[np.ndarray] = []
+        self._prescribed: dict[int, float] = {}
+        self._rigid: list[np.ndarray] = []
+        self._embedded: list[tuple[int, np.ndarray, np.ndarray]] = []
+        self.memory_budget_mb = memory_budget_mb
+        self.dofmap: DofMap | None = None
+
+    @property
+    def n_nodes(self) -> int:
+        return self.X.shape[0]
+
+    # -- read-only description (exporters, reports) ---------------------------------------------------
+    @property
+    def clamped_dofs(self) -> np.ndarray:
+        """Sorted global dofs ``3 * node + component`` fixed at zero."""
+        return np.unique(np.concatenate(self._clamped)) if self._clamped else np.zeros(0, dtype=np.int64)
+
+    @property
+    def prescribed_dofs(self) -> dict[int, float]:
+        """Global dof -> displacement (mm) reached at load factor 1."""
+        return dict(self._prescribed)
+
+    @property
+    def rigid_node_sets(self) -> list[np.ndarray]:
+        """Node sets moving as rigid bodies (reference point: their centroid)."""
+        return list(self._rigid)
+
+    @property
+    def embedded_nodes(self) -> list[tuple[int, np.ndarray, np.ndarray]]:
+        """``(node, host nodes, weights)`` ties of embedded nodes."""
+        return list(self._embedded)
+
+    # -- building ----------------------------------------------------------------------------------
+    def add_nodes(self, X: np.ndarray) -> np.ndarray:
+        """Append extra nodes (e.g. fiber nodes); returns their indices."""
+        self._editable()
+        first = self.n_nodes
+        self.X = np.concatenate([self.X, np.asarray(X, dtype=np.float64).reshape(-1, 3)])
+        return np.arange(first, self.n_nodes)
+
+    def add(self, term: Term) -> Term:
+        self._editable()
+        self.terms.append(term)
+        return term
+
+    def _nodes(self, name_or_nodes) -> np.ndarray:
+        if isinstance(name_or_nodes, str):
+            if name_or_nodes in self.mesh.node_sets:
+                return self.mesh.node_sets[name_or_nodes]
+            if name_or_nodes in self.mesh.face_sets:
+                return self.mesh.face_set_nodes(name_or_nodes)
+            raise MeshError(
+                f"no node set or face set named '{name_or_nodes}'; node sets: {sorted(self.mesh.node_sets)}, "
+                f"face sets: {sorted(self.mesh.face_sets)}"
+            )
+        return np.asarray(name_or_nodes, dtype=np.int64).ravel()
+
+    def clamp(self, nodes, components=(0, 1, 2)) -> None:
+        """Fix the given displacement components (0=x, 1=y, 2=z) of a node set / face set to zero."""
+        self._editable()
+        n = self._nodes(nodes)
+        self._clamped.append((3 * n[:, None] + np.asarray(components)).ravel())
+
+    def prescribe(self, nodes, component: int, value: float) -> None:
+        """Displacement ``component`` of the nodes equals ``load_factor * value`` (mm)."""
+        self._editable()
+        for node in self._nodes(nodes):
+            self._prescribed[int(3 * node + component)] = float(value)
+
+    def rigid(self, nodes) -> None:
+        """The nodes move as one rigid body (finite rotation): a face that stays flat and undeformed."""
+        self._editable()
+        self._rigid.append(np.unique(self._nodes(nodes)))
+
+    def embed(self, node: int, hosts: np.ndarray, weights: np.ndarray) -> None:
+        """Tie ``node`` to host nodes: u_node = sum weights * u_hosts (embedded-element constraint)."""
+        self._editable()
+        self._embedded.append((int(node), np.asarray(hosts, dtype=np.int64), np.asarray(weights, dtype=np.float64)))
+
+    def _editable(self):
+        if self.dofmap is not None:
+            raise RuntimeError("the model is finalized; build a new Model to change it")
+
+    def finalize(self) -> "Model":
+        if self.dofmap is not None:
+            return self
+        if not self.terms:
+            raise ValueError("the model has no terms; add at least a solid body")
+        clamped = self.clamped_dofs
+        presc = {d: v for d, v in self._prescribed.items() if d not in set(clamped.tolist())}
+        self.dofmap = DofMap(self.n_nodes, clamped, presc, self._rigid, self._embedded, self.X, self.dtype)
+        n = 3 * self.n_nodes
+        self.pattern = SparsePattern(n, [t.dofs for t in self.terms])
+        self._dofs = [torch.as_tensor(t.dofs).ravel() for t in self.terms]
+        self._free_nodes_check()
+        return self
+
+    def _free_nodes_check(self):
+        used = np.zeros(3 * self.n_nodes, dtype=bool)
+        for t in self.terms:
+            used[t.dofs.ravel()] = True
+        col_used = np.asarray(abs(self.dofmap.T).T @ used.astype(float)).ravel() > 0
+        if not col_used.all():
+            raise ValueError(
+                f"{int((~col_used).sum())} unknowns touch no element (orphan nodes?); the stiffness would be singular"
+            )
+
+    @property
+    def n_red(self) -> int:
+        return self.finalize().dofmap.n_red
+
+    def param_names(self) -> list[str]:
+        return sorted({k for t in self.terms for k in t.param_names})
+
+    def validate(self, params: dict[str, torch.Tensor]) -> int:
+        """Check parameters (every member); returns the number of members."""
+        sizes = {k: v.shape for k, v in params.items()}
+        n = {s[0] for s in sizes.values() if len(s) == 1}
+        if len(n) != 1 or any(len(s) != 1 for s in sizes.values()):
+            raise ValueError(f"every parameter must be a 1-D tensor over the same members, got shapes {sizes}")
+        for t in self.terms:
+            t.validate(params)
+        return n.pop()
+
+    # -- evaluation --------------------------------------------------------------------------------
+    def displacement(self, a: torch.Tensor, load_factor: torch.Tensor) -> torch.Tensor:
+        """a: (N, n_red) -> nodal displacements (N, n_nodes, 3)."""
+        return self.finalize().dofmap.expand(a, load_factor).reshape(a.shape[0], -1, 3)
+
+    def evaluate(self, a, params, load_factor, tangent=False, energy=False) -> Evaluation:
+        """Reduced residual (and tangents, energy) of members ``a: (N, n_red)``."""
+        self.finalize()
+        N = a.shape[0]
+        if tangent:
+            chunk = self._chunk_size()
+            if N > chunk:
+                parts = [
+                    self.evaluate(a[i : i + chunk], {k: v[i : i + chunk] for k, v in params.items()},
+                                  load_factor[i : i + chunk], tangent, energy)
+                    for i in range(0, N, chunk)
+                ]
+                return Evaluation(
+                    torch.cat([p.residual for p in parts]), torch.cat([p.force_scale for p in parts]),
+                    torch.cat([p.ok for p in parts]),
+                    torch.cat([p.energy for p in parts]) if energy else None,
+                    [K for p in parts for K in p.tangents],
+                )
+        u = self.displacement(a, load_factor)
+        n = 3 * self.n_nodes
+        r_full = torch.zeros(N, n, dtype=a.dtype)
+        scale = torch.zeros(N, dtype=a.dtype)
+        ok = torch.ones(N, dtype=torch.bool)
+        W = torch.zeros(N, dtype=a.dtype) if energy else None
+        blocks = []
+        for t, dofs in zip(self.terms, self._dofs):
+            out = t.evaluate(u, params, load_factor, tangent=tangent, energy=energy)
+            r_t = torch.zeros(N, n, dtype=a.dtype).index_add_(1, dofs, out.fe.reshape(N, -1))
+            r_full += r_t
+            scale = torch.maximum(scale, torch.linalg.norm(r_t, dim=1))
+            ok &= out.ok
+            if energy:
+                if out.energy is None:
+                    raise ValueError(f"{type(t).__name__} is not conservative: the model has no total potential")
+                W += out.energy
+            blocks.append(out.Ke)
+        r = self.dofmap.reduce(r_full, a)
+        Ks = self._reduced_tangents(a, r_full, blocks) if tangent else None
+        return Evaluation(r, scale, ok, W, Ks)
+
+    def _reduced_tangents(self, a, r_full, blocks) -> list[sp.csr_matrix]:
+        data = self.pattern.assemble(blocks).numpy()
+        Js = self.dofmap.jacobian(a)
+        geo = self.dofmap.geometric_stiffness(a, r_full)
+        Ks = []
+        for m in range(a.shape[0]):
+            K = self.pattern.to_scipy(data[m])
+            Kr = (Js[m].T @ (K @ Js[m])).tocsr()
+            if geo:
+                extra = sp.lil_matrix(Kr.shape)
+                for cols, H in geo:
+                    extra[np.ix_(cols, cols)] = H[m]
+                Kr = (Kr + extra.tocsr()).tocsr()
+            Ks.append(Kr)
+        return Ks
+
+    def _chunk_size(self) -> int:
+        per_member = sum(t.dofs.shape[0] * t.dofs.shape[1] ** 2 for t in self.terms) * 8 * 3  # Ke + temporaries
+        return max(1, int(self.memory_budget_mb * 2**20 // per_member))

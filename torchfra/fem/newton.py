@@ -1,0 +1,240 @@
+"""Newton-Raphson with load stepping for N members at once.
+
+Every member has its own load path: its own increment, cutbacks and status; all members still
+iterate in lockstep so element kernels run batched over (member x element). A member that fails
+after its cutbacks is reported (status, load reached, last residual) while the others finish.
+
+Convergence of an increment (both must hold):
+  force:  ||r||_2 <= rtol * f_scale + atol,  f_scale = largest norm of one term's nodal forces
+          (so reactions count for displacement-driven problems);
+  energy: |da_k . r_k| <= etol * |da_0 . r_0|  (skipped when the predictor already satisfies force).
+Divergence (cut the increment by ``cutback`` and retry from the last converged state): a
+non-finite residual, an inadmissible state (det F <= 0) after line search, a singular tangent,
+or no convergence within ``max_iterations``.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse.linalg as spla
+import torch
+
+from .model import Model
+
+
+@dataclass
+class NewtonOptions:
+    rtol: float = 1e-9
+    atol: float = 1e-14
+    etol: float = 1e-16
+    max_iterations: int = 15
+    initial_increment: float = 0.1
+    min_increment: float = 1e-5
+    max_increment: float = 1.0
+    growth: float = 1.5
+    easy_iterations: int = 4
+    cutback: float = 0.25
+    line_search_steps: int = 4
+    line_search_growth: float = 1e6  # backtrack when ||r|| grows more than this (near-incompressible
+    # Newton steps legitimately raise ||r|| by orders of magnitude before converging quadratically)
+
+
+CONVERGED, DIVERGED = "converged", "diverged"
+
+
+@dataclass
+class Solution:
+    """Results at the requested load factors.
+
+    u: (N, T, n_nodes, 3) displacements (NaN where a member did not reach that load);
+    a: (N, T, n_red) reduced unknowns; status (N,): "converged" / "diverged";
+    load_reached (N,); iterations, increments, cutbacks (N,); last_residual (N,) relative;
+    residual_history: per member, the relative residual of every Newton iteration.
+    """
+
+    load_factors: np.ndarray
+    u: torch.Tensor
+    a: torch.Tensor
+    status: np.ndarray
+    load_reached: np.ndarray
+    iterations: np.ndarray
+    increments: np.ndarray
+    cutbacks: np.ndarray
+    last_residual: np.ndarray
+    residual_history: list[list[float]]
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def converged(self) -> np.ndarray:
+        return self.status == CONVERGED
+
+
+def _members(params, idx):
+    return {k: v[idx] for k, v in params.items()}
+
+
+def solve(
+    model: Model,
+    params: dict[str, torch.Tensor],
+    load_factors=(1.0,),
+    options: NewtonOptions | None = None,
+    progress: bool = False,
+) -> Solution:
+    """Solve ``model`` for every member (params: name -> (N,)) at the given load factors in (0, 1]."""
+    opt = options or NewtonOptions()
+    model.finalize()
+    dtype = model.dtype
+    params = {k: torch.as_tensor(v, dtype=dtype).reshape(-1) for k, v in params.items()}
+    N = model.validate(params)
+    outs = np.unique(np.asarray(load_factors, dtype=np.float64))
+    if outs.size == 0 or outs[0] <= 0 or outs[-1] > 1 + 1e-12:
+        raise ValueError(f"load factors must lie in (0, 1], got {load_factors}")
+    T, n = outs.size, model.n_red
+    timings = {"residual": 0.0, "tangent": 0.0, "solve": 0.0}
+
+    a = torch.zeros(N, n, dtype=dtype)
+    a_conv, a_prev = a.clone(), a.clone()
+    lam_conv, lam_prev = np.zeros(N), np.zeros(N)
+    dlam = np.full(N, opt.initial_increment)
+    nxt = np.zeros(N, dtype=np.int64)
+    lam = np.minimum(dlam, outs[0])
+    it = np.zeros(N, dtype=np.int64)
+    E0, de = np.zeros(N), np.zeros(N)
+    active = np.ones(N, dtype=bool)
+    status = np.array([CONVERGED] * N, dtype=object)
+    iterations, increments, cutbacks = np.zeros(N, int), np.zeros(N, int), np.zeros(N, int)
+    last_res = np.full(N, np.nan)
+    history: list[list[float]] = [[] for _ in range(N)]
+    a_out = torch.full((N, T, n), float("nan"), dtype=dtype)
+
+    def evaluate(idx, aa, tangent=False):
+        t0 = time.perf_counter()
+        ev = model.evaluate(aa, _members(params, idx), torch.as_tensor(lam[idx], dtype=dtype), tangent=tangent)
+        timings["tangent" if tangent else "residual"] += time.perf_counter() - t0
+        return ev
+
+    def predictor(m):
+        return a_conv[m] + (lam[m] - lam_conv[m]) * velocity[m]
+
+    def cut(m):
+        cutbacks[m] += 1
+        step = opt.cutback * (lam[m] - lam_conv[m])
+        if step < opt.min_increment:
+            status[m], active[m] = DIVERGED, False
+            return
+        dlam[m], lam[m], it[m] = step, lam_conv[m] + step, 0
+        ls_pending[m] = False
+        a[m] = predictor(m)
+
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=100, desc=f"Newton, {N} members", unit="% load")
+
+    # Euler predictor for the first increment: da/dlambda = -K^-1 dr/dlambda at the unloaded state.
+    velocity = _euler_velocity(model, params, dtype)
+    a = torch.as_tensor(lam, dtype=dtype)[:, None] * velocity
+    ls_base, ls_da = torch.zeros(N, n, dtype=dtype), torch.zeros(N, n, dtype=dtype)
+    ls_alpha, ls_count = np.ones(N), np.zeros(N, dtype=np.int64)
+    ls_pending, r_prev = np.zeros(N, dtype=bool), np.zeros(N)
+    idx = np.flatnonzero(active)
+    while idx.size:
+        ev = evaluate(idx, a[idx])
+        rnorm = torch.linalg.norm(ev.residual, dim=1).numpy()
+        scale = ev.force_scale.numpy()
+        rel = rnorm / np.maximum(scale, 1e-300)
+        ok = ev.ok.numpy() & np.isfinite(rnorm)
+        force_ok = rnorm <= opt.rtol * scale + opt.atol
+        need = []
+        for j, m in enumerate(idx):
+            if ls_pending[m]:
+                # line search: back off while the trial state is inadmissible or the residual blew up
+                if (not ok[j] or rnorm[j] > opt.line_search_growth * r_prev[m]) and ls_count[m] < opt.line_search_steps:
+                    ls_alpha[m] *= 0.5
+                    ls_count[m] += 1
+                    a[m] = ls_base[m] + ls_alpha[m] * ls_da[m]
+                    continue
+                ls_pending[m] = False
+            history[m].append(float(rel[j]))
+            last_res[m] = rel[j]
+            energy_ok = it[m] == 0 or de[m] <= opt.etol * E0[m]
+            if ok[j] and force_ok[j] and energy_ok:
+                increments[m] += 1
+                lam_prev[m], lam_conv[m] = lam_conv[m], lam[m]
+                a_prev[m], a_conv[m] = a_conv[m], a[m].clone()
+                velocity[m] = (a_conv[m] - a_prev[m]) / (lam_conv[m] - lam_prev[m])
+                if lam[m] == outs[nxt[m]]:
+                    a_out[m, nxt[m]] = a[m]
+                    nxt[m] += 1
+                    if nxt[m] == T:
+                        active[m] = False
+                        continue
+                if it[m] <= opt.easy_iterations:
+                    dlam[m] = min(dlam[m] * opt.growth, opt.max_increment)
+                lam[m] = min(lam_conv[m] + dlam[m], outs[nxt[m]])
+                it[m] = 0
+                a[m] = predictor(m)
+            elif not ok[j] or it[m] >= opt.max_iterations:
+                cut(m)
+            else:
+                need.append(m)
+                r_prev[m] = rnorm[j]
+        if need:
+            need = np.asarray(need)
+            evt = evaluate(need, a[need], tangent=True)
+            t0 = time.perf_counter()
+            for j, m in enumerate(need):
+                try:
+                    lu = spla.splu(evt.tangents[j].tocsc())
+                    da = torch.as_tensor(lu.solve(-evt.residual[j].numpy()))
+                except RuntimeError:  # exactly singular tangent
+                    da = torch.full((n,), float("nan"), dtype=dtype)
+                dot = abs(float(da @ evt.residual[j]))
+                if it[m] == 0:
+                    E0[m] = dot
+                de[m] = dot
+                it[m] += 1
+                iterations[m] += 1
+                if not torch.isfinite(da).all():
+                    cut(m)
+                    continue
+                ls_base[m], ls_da[m], ls_alpha[m], ls_count[m] = a[m], da, 1.0, 0
+                ls_pending[m] = True
+                a[m] = a[m] + da
+            timings["solve"] += time.perf_counter() - t0
+        if bar is not None:
+            act = np.flatnonzero(active)
+            done = 100 * (lam_conv[act].min() if act.size else 1.0)
+            bar.update(max(0.0, round(done - bar.n, 1)))
+        idx = np.flatnonzero(active)
+    if bar is not None:
+        bar.close()
+
+    u_out = torch.full((N, T, model.n_nodes, 3), float("nan"), dtype=dtype)
+    for k in range(T):
+        done = torch.as_tensor(nxt > k)
+        if done.any():
+            lam_k = torch.full((int(done.sum()),), outs[k], dtype=dtype)
+            u_out[done, k] = model.displacement(a_out[done, k], lam_k)
+    return Solution(outs, u_out, a_out, status.astype(str), lam_conv.copy(), iterations, increments, cutbacks,
+                    last_res, history, timings)
+
+
+
+def _euler_velocity(model: Model, params, dtype, h: float = 1e-6) -> torch.Tensor:
+    """``da/dlambda`` at a = 0, lambda = 0 for every member (central difference in lambda)."""
+    N = next(iter(params.values())).shape[0]
+    a0 = torch.zeros(N, model.n_red, dtype=dtype)
+    lam = torch.zeros(N, dtype=dtype)
+    ev = model.evaluate(a0, params, lam, tangent=True)
+    dr = (model.evaluate(a0, params, lam + h).residual - model.evaluate(a0, params, lam - h).residual) / (2 * h)
+    v = torch.zeros_like(a0)
+    for m in range(N):
+        try:
+            v[m] = torch.as_tensor(spla.splu(ev.tangents[m].tocsc()).solve(-dr[m].numpy()))
+        except RuntimeError:  # singular initial tangent: start from zero, Newton will tell
+            v[m] = 0.0
+    return v

@@ -1,0 +1,66 @@
+"""The contract between energy terms and the assembly.
+
+A term is one physics contribution (a material body, fibers, a pressure, a spring...). It sees
+element-level tensors only: ``dofs`` lists, for each of its blocks (elements, faces, ...), the global
+degrees of freedom ``3 * node + component`` it touches; ``evaluate`` returns block residuals and
+block tangents for all members at once. Sparse patterns, scatter and constraints live in
+``assembly.py`` and ``constraints.py``.
+
+Every term has parameters with a *null* value at which it vanishes, so extending a model is adding
+a term (DESIGN §1.4).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+
+@dataclass
+class TermOutput:
+    """Block residuals ``fe`` (N, B, D), tangents ``Ke`` (N, B, D, D) or None, energy (N,) or None,
+    and ``ok`` (N,): False where the member's state is inadmissible (e.g. det F <= 0)."""
+
+    fe: torch.Tensor
+    Ke: torch.Tensor | None
+    energy: torch.Tensor | None
+    ok: torch.Tensor
+
+
+class Term:
+    """Base class of energy terms.
+
+    ``kind`` is ``"internal"`` (stored energy) or ``"load"`` (work of external loads, scaled by the
+    load factor). ``conservative`` terms have an energy; follower loads on open surfaces do not.
+    """
+
+    kind: str = "internal"
+    conservative: bool = True
+    param_names: tuple[str, ...] = ()
+    dofs: np.ndarray  # (B, D) global dof indices
+
+    def validate(self, params: dict[str, torch.Tensor]) -> None:
+        for name in self.param_names:
+            if name not in params:
+                raise KeyError(f"{type(self).__name__} needs parameter '{name}'; got {sorted(params)}")
+            v = params[name]
+            if not torch.isfinite(v).all():
+                m = int(torch.nonzero(~torch.isfinite(v))[0, 0])
+                raise ValueError(f"parameter {name} of member {m} is not finite ({float(v[m])})")
+
+    def evaluate(
+        self,
+        u: torch.Tensor,
+        params: dict[str, torch.Tensor],
+        load_factor: torch.Tensor,
+        tangent: bool = True,
+        energy: bool = False,
+    ) -> TermOutput:
+        """u: (N, n_nodes, 3) displacements; params: name -> (N,); load_factor: (N,)."""
+        raise NotImplementedError
+
+
+def node_dofs(nodes: np.ndarray) -> np.ndarray:
+    """(B, A) node indices -> (B, 3A) dof indices, node-major."""
+    return (3 * nodes[..., None] + np.arange(3)).reshape(nodes.shape[0], -1)

@@ -1,0 +1,75 @@
+"""Three-node quadratic trusses (Abaqus T3D3 analogue) for fibers.
+
+Energy of one element, 2-point Gauss along the reference arc (as T3D3):
+
+    W = sum_q w_q |X_s|_q  (E A / 2) eps_q^2,   eps = (|x_s|^2 / |X_s|^2 - 1) / 2   (Green strain),
+
+E in MPa, A in mm^2, W in mJ. Fibers are nearly inextensible, so strains stay far below 1e-2 and
+the choice of strain measure is immaterial; Poisson's ratio does not enter a truss's axial force.
+Residual and tangent are derived from W by torch.func (9 inputs per element).
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch.func import grad, jacfwd, vmap
+
+from .elements import as_tensor, gauss_1d, line3_shape
+from .terms import Term, TermOutput, node_dofs
+
+
+class Truss(Term):
+    """Line3 trusses between model nodes.
+
+    X: (n_model_nodes, 3) reference coordinates of the model; conn: (B, 3) node indices (ends, middle);
+    area: cross-section (mm^2); modulus: name of the Young's modulus parameter (MPa).
+    """
+
+    kind = "internal"
+
+    def __init__(self, X: np.ndarray, conn: np.ndarray, area: float, modulus: str = "E_fiber", dtype=torch.float64):
+        conn = np.asarray(conn, dtype=np.int64)
+        if conn.ndim != 2 or conn.shape[1] != 3:
+            raise ValueError(f"truss connectivity must have shape (n_elements, 3), got {conn.shape}")
+        if not area > 0:
+            raise ValueError(f"truss cross-section area must be positive, got {area}")
+        self.param_names = (modulus,)
+        self.modulus, self.area = modulus, float(area)
+        self.conn = torch.as_tensor(conn)
+        self.dofs = node_dofs(conn)
+        pts, wts = gauss_1d(2)
+        _, dN = line3_shape(pts)
+        self.dN, self.w = as_tensor(dN, dtype), as_tensor(wts, dtype)
+        self.X = as_tensor(np.asarray(X)[conn], dtype)  # (B, 3, 3)
+        L0 = torch.linalg.norm(torch.einsum("qa,bai->bqi", self.dN, self.X), dim=-1)
+        if not (L0 > 0).all():
+            b = int(torch.nonzero(~(L0 > 0).all(1))[0, 0])
+            raise ValueError(f"truss element {b} has zero length: nodes {conn[b].tolist()}")
+        self.jac0 = L0  # (B, Q) = |X_s|
+
+    def validate(self, params):
+        super().validate(params)
+        v = params[self.modulus]
+        if (v <= 0).any():
+            m = int(torch.nonzero(v <= 0)[0, 0])
+            raise ValueError(f"parameter {self.modulus} of member {m} must be positive, got {float(v[m])}")
+
+    def _element_energy(self, x: torch.Tensor, jac0: torch.Tensor, EA: torch.Tensor) -> torch.Tensor:
+        xs = torch.einsum("qa,ai->qi", self.dN, x)
+        eps = 0.5 * ((xs * xs).sum(-1) / jac0**2 - 1.0)
+        return 0.5 * EA * (self.w * jac0 * eps**2).sum()
+
+    def axial_strain(self, u: torch.Tensor) -> torch.Tensor:
+        """Green strain at the Gauss points, (N, B, 2)."""
+        xs = torch.einsum("qa,nbai->nbqi", self.dN, self.X + u[:, self.conn])
+        return 0.5 * ((xs * xs).sum(-1) / self.jac0**2 - 1.0)
+
+    def evaluate(self, u, params, load_factor, tangent=True, energy=False):
+        N, B = u.shape[0], self.conn.shape[0]
+        x = (self.X + u[:, self.conn]).reshape(N * B, 3, 3)
+        jac0 = self.jac0.repeat(N, 1)
+        EA = (params[self.modulus] * self.area).repeat_interleave(B)
+        fe = vmap(grad(self._element_energy))(x, jac0, EA).reshape(N, B, 9)
+        Ke = vmap(jacfwd(grad(self._element_energy)))(x, jac0, EA).reshape(N, B, 9, 9) if tangent else None
+        W = vmap(self._element_energy)(x, jac0, EA).reshape(N, B).sum(1) if energy else None
+        return TermOutput(fe, Ke, W, torch.ones(N, dtype=torch.bool, device=u.device))
