@@ -67,7 +67,11 @@ class DofMap:
         for nodes in rigid_sets:
             d = (3 * nodes[:, None] + np.arange(3)).ravel()
             if np.any(role[d]):
-                raise ValueError("a rigid node set overlaps clamped, prescribed or another rigid set's nodes")
+                node = int(d[np.argmax(role[d] > 0)] // 3)
+                raise ValueError(
+                    f"node {node} of a rigid node set is also clamped, prescribed or in another rigid set; "
+                    "a node can carry only one kind of constraint (remove it from one of the sets)"
+                )
             role[d] = 2
         for node, _, _ in embedded:
             if np.any(role[3 * node : 3 * node + 3]):

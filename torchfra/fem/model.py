@@ -101,11 +101,14 @@ class Model:
         n = self._nodes(nodes)
         self._clamped.append((3 * n[:, None] + np.asarray(components)).ravel())
 
-    def prescribe(self, nodes, component: int, value: float) -> None:
-        """Displacement ``component`` of the nodes equals ``load_factor * value`` (mm)."""
+    def prescribe(self, nodes, component: int, value) -> None:
+        """Displacement ``component`` of the nodes equals ``load_factor * value`` (mm); ``value`` is
+        one number or one per node."""
         self._editable()
-        for node in self._nodes(nodes):
-            self._prescribed[int(3 * node + component)] = float(value)
+        n = self._nodes(nodes)
+        values = np.broadcast_to(np.asarray(value, dtype=np.float64), n.shape)
+        for node, v in zip(n, values):
+            self._prescribed[int(3 * node + component)] = float(v)
 
     def rigid(self, nodes) -> None:
         """The nodes move as one rigid body (finite rotation): a face that stays flat and undeformed."""
@@ -140,6 +143,8 @@ class Model:
         for t in self.terms:
             used[t.dofs.ravel()] = True
         col_used = np.asarray(abs(self.dofmap.T).T @ used.astype(float)).ravel() > 0
+        for b in self.dofmap.bodies:  # rotations act through the nonlinear part of the map
+            col_used[b.columns[3:]] = True
         if not col_used.all():
             raise ValueError(
                 f"{int((~col_used).sum())} unknowns touch no element (orphan nodes?); the stiffness would be singular"
@@ -206,6 +211,19 @@ class Model:
         r = self.dofmap.reduce(r_full, a)
         Ks = self._reduced_tangents(a, r_full, blocks) if tangent else None
         return Evaluation(r, scale, ok, W, Ks)
+
+    def nodal_forces(self, u: torch.Tensor, params, load_factor, kinds=("internal",)) -> torch.Tensor:
+        """Sum of the nodal forces of the terms of the given kinds, (N, n_nodes, 3) in N.
+
+        At equilibrium the internal forces at constrained nodes are the reactions (Abaqus RF).
+        """
+        self.finalize()
+        N, n = u.shape[0], 3 * self.n_nodes
+        r = torch.zeros(N, n, dtype=u.dtype)
+        for t, dofs in zip(self.terms, self._dofs):
+            if t.kind in kinds:
+                r.index_add_(1, dofs, t.evaluate(u, params, load_factor, tangent=False).fe.reshape(N, -1))
+        return r.reshape(N, -1, 3)
 
     def _reduced_tangents(self, a, r_full, blocks) -> list[sp.csr_matrix]:
         data = self.pattern.assemble(blocks).numpy()

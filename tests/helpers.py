@@ -1,0 +1,40 @@
+"""Shared fixtures-by-function for the tests (small meshes and models)."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from torchfra import fem
+from torchfra.fem.elements import HEX20_FACES
+from torchfra.geometry.structured import box_mesh
+
+
+def assemble_dense(term, u, params, lam, n_dofs):
+    """Dense global residual (N, n) and tangent (N, n, n) of one term, by brute-force scatter."""
+    out = term.evaluate(u, params, lam, tangent=True)
+    N = u.shape[0]
+    dofs = torch.as_tensor(term.dofs)
+    r = torch.zeros(N, n_dofs).index_add_(1, dofs.ravel(), out.fe.reshape(N, -1))
+    K = torch.zeros(N, n_dofs, n_dofs)
+    for b in range(dofs.shape[0]):
+        K[:, dofs[b][:, None], dofs[b][None, :]] += out.Ke[:, b]
+    return r, K
+
+
+def block_with_cavity(n=3, size=3.0):
+    """An n x n x n block (n odd) with its central element removed: face set 'cavity' closes it."""
+    full = box_mesh((size, size, size), (n, n, n))
+    centre = int(np.argmin(np.linalg.norm(full.nodes[full.elements].mean(1) - size / 2, axis=1)))
+    keep = np.setdiff1d(np.arange(full.n_elements), [centre])
+    hole_faces = {frozenset(full.elements[centre][f].tolist()) for f in HEX20_FACES}
+    elements = full.elements[keep]
+    cavity = [
+        (e, f) for e in range(elements.shape[0]) for f in range(6)
+        if frozenset(elements[e][HEX20_FACES[f]].tolist()) in hole_faces
+    ]
+    remap = -np.ones(full.n_elements, dtype=np.int64)
+    remap[keep] = np.arange(keep.size)
+    face_sets = {k: np.stack([remap[v[:, 0]], v[:, 1]], 1) for k, v in full.face_sets.items()}
+    face_sets = {k: v[v[:, 0] >= 0] for k, v in face_sets.items()}
+    face_sets["cavity"] = np.array(cavity)
+    return fem.Mesh(full.nodes, elements, full.node_sets, face_sets)
