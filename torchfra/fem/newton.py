@@ -7,7 +7,11 @@ after its cutbacks is reported (status, load reached, last residual) while the o
 Convergence of an increment (both must hold):
   force:  ||r||_2 <= rtol * f_scale + atol,  f_scale = largest norm of one term's nodal forces
           (so reactions count for displacement-driven problems);
-  energy: |da_k . r_k| <= etol * |da_0 . r_0|  (skipped when the predictor already satisfies force).
+  energy: |da_k . r_k| <= etol * E_ref,  E_ref = max(|da_0 . r_0|, f_scale * ||a - a_conv||), the
+          work scale of the increment (skipped when the predictor already satisfies force).
+Round-off floor: the attainable relative residual grows with the bulk/shear ratio (~1e-9 at
+K/mu = 2e6); an iterate whose relative residual is below ``stagnation_tol`` and no longer falls
+(by 2x per iteration, where Newton would square it) is accepted as converged to that floor.
 Divergence (cut the increment by ``cutback`` and retry from the last converged state): a
 non-finite residual, an inadmissible state (det F <= 0) after line search, a singular tangent,
 or no convergence within ``max_iterations``.
@@ -36,6 +40,7 @@ class NewtonOptions:
     growth: float = 1.5
     easy_iterations: int = 4
     cutback: float = 0.25
+    stagnation_tol: float = 1e-7
     line_search_steps: int = 4
     line_search_growth: float = 1e6  # backtrack when ||r|| grows more than this (near-incompressible
     # Newton steps legitimately raise ||r|| by orders of magnitude before converging quadratically)
@@ -139,7 +144,7 @@ def solve(
     a = torch.as_tensor(lam, dtype=dtype)[:, None] * velocity
     ls_base, ls_da = torch.zeros(N, n, dtype=dtype), torch.zeros(N, n, dtype=dtype)
     ls_alpha, ls_count = np.ones(N), np.zeros(N, dtype=np.int64)
-    ls_pending, r_prev = np.zeros(N, dtype=bool), np.zeros(N)
+    ls_pending, r_prev, rel_prev = np.zeros(N, dtype=bool), np.zeros(N), np.full(N, np.inf)
     idx = np.flatnonzero(active)
     while idx.size:
         ev = evaluate(idx, a[idx])
@@ -160,8 +165,11 @@ def solve(
                 ls_pending[m] = False
             history[m].append(float(rel[j]))
             last_res[m] = rel[j]
-            energy_ok = it[m] == 0 or de[m] <= opt.etol * E0[m]
-            if ok[j] and force_ok[j] and energy_ok:
+            E_ref = max(E0[m], scale[j] * float(torch.linalg.norm(a[m] - a_conv[m])))
+            energy_ok = it[m] == 0 or de[m] <= opt.etol * E_ref
+            stagnated = it[m] > 0 and rel[j] < opt.stagnation_tol and rel[j] > 0.5 * rel_prev[m]
+            rel_prev[m] = rel[j]
+            if ok[j] and ((force_ok[j] and energy_ok) or stagnated):
                 increments[m] += 1
                 lam_prev[m], lam_conv[m] = lam_conv[m], lam[m]
                 a_prev[m], a_conv[m] = a_conv[m], a[m].clone()

@@ -11,7 +11,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..fem.elements import HEX20_NATURAL
+from ..fem.elements import HEX20_EDGES, HEX20_NATURAL
 from ..fem.mesh import Mesh
 
 # Abaqus face number (0-based) of each side of the parameter cube.
@@ -64,9 +64,9 @@ def box_mesh(
 ) -> Mesh:
     """Box ``origin + [0, size]`` meshed with Hex20 bricks.
 
-    distortion: interior *corner-lattice* points are moved by up to this fraction of the local
-    element size (a smooth random map, so the mesh stays valid and edges stay straight only on
-    the boundary); used for patch tests on distorted meshes.
+    distortion: interior element corners are moved by up to this fraction of the local element
+    size (a smooth random map keeps the mesh valid); mid-edge nodes stay at the middle of their
+    straight edges, as in the standard (MacNeal-Harder) patch test meshes.
     """
     size_arr, origin_arr = np.asarray(size, dtype=np.float64), np.asarray(origin, dtype=np.float64)
     if np.any(size_arr <= 0):
@@ -82,7 +82,12 @@ def box_mesh(
             s = s + distortion / div * bubble * waves
         return origin_arr + s * size_arr
 
-    return structured_hex20(tuple(divisions), mapping)
+    mesh = structured_hex20(tuple(divisions), mapping)
+    if distortion:
+        corners = mesh.nodes[mesh.elements[:, HEX20_EDGES]]  # (E, 12, 2, 3)
+        mesh.nodes[mesh.elements[:, 8:]] = corners.mean(axis=2)
+        mesh.validate()
+    return mesh
 
 
 def ring_sector_mesh(

@@ -100,6 +100,7 @@ def write_inp(
     title: str = "torchfra model",
     residual_tolerance: float = 1e-10,
     truss_poisson: float = 0.36,
+    settle_steps: int = 4,
 ) -> Path:
     """Write ``model`` for one parameter set as an Abaqus/CalculiX ``.inp`` deck; returns the path.
 
@@ -194,10 +195,11 @@ def write_inp(
     step = [f"*STEP{', NLGEOM' if nlgeom else ''}, INC={10 * int(increments) + 100}", "*STATIC, DIRECT",
             f"{_num(1.0 / int(increments))}, 1.0"]
     # Iteration limits raised so that no check cuts a DIRECT increment that converges quadratically.
-    step += ["*CONTROLS, PARAMETERS=TIME INCREMENTATION", "20, 30, 40, 50, 40, 4, , 5",
-             "*CONTROLS, PARAMETERS=FIELD",
-             f"{_num(residual_tolerance)}, {_num(residual_tolerance)}, , , {_num(residual_tolerance)}, 1e-5, "
-             f"{_num(residual_tolerance)}, {_num(1e-3 * residual_tolerance)}"]
+    controls = ["*CONTROLS, PARAMETERS=TIME INCREMENTATION", "20, 30, 40, 50, 40, 4, , 5",
+                "*CONTROLS, PARAMETERS=FIELD",
+                f"{_num(residual_tolerance)}, {_num(residual_tolerance)}, , , {_num(residual_tolerance)}, 1e-5, "
+                f"{_num(residual_tolerance)}, {_num(1e-3 * residual_tolerance)}"]
+    step += controls
     clamped = set(model.clamped_dofs.tolist())
     presc = {d: v for d, v in model.prescribed_dofs.items() if d not in clamped}
     if presc:
@@ -207,6 +209,10 @@ def write_inp(
         step.append("*DLOAD")
         step += [f"{e + 1}, P{f + 1}, {_num(p)}" for (e, f), p in sorted(loads.items())]
     step += ["*NODE PRINT, NSET=NMODEL", "U", "*NODE FILE", "U", "*END STEP"]
+    if loads:
+        for _ in range(int(settle_steps)):
+            step += [f"*STEP{', NLGEOM' if nlgeom else ''}, INC=100", "*STATIC, DIRECT", "1.0, 1.0"]
+            step += controls + ["*NODE PRINT, NSET=NMODEL", "U", "*NODE FILE", "U", "*END STEP"]
 
     path = Path(path)
     path.write_text("\n".join(model_data + step) + "\n")
@@ -326,8 +332,9 @@ def run_calculix(inp_path, *, executable: str = "ccx", threads: int = 1, timeout
     if not blocks:
         raise CalculixError(f"{dat} holds no displacement output; output tail:\n{_tail(out)}")
     time, u = blocks[-1]
-    if abs(time - 1.0) > 1e-6:
-        raise CalculixError(f"CalculiX stopped at step time {time} < 1 on {inp_path}; output tail:\n{_tail(out)}")
+    if time < 1.0 - 1e-6 or "Job finished" not in out:
+        raise CalculixError(f"CalculiX stopped at time {time} before the end of the step on {inp_path}; "
+                            f"output tail:\n{_tail(out)}")
     result = np.full((max(u) + 1, 3), np.nan)
     for node, value in u.items():
         result[node] = value

@@ -1,0 +1,1 @@
+"""Reports of runs: TensorBoard logging and figures (``tensorboard.py``)."""

@@ -1,0 +1,179 @@
+"""TensorBoard logging of runs: Newton solutions, deformed meshes, hyperparameters, figures.
+
+Everything goes through one ``torch.utils.tensorboard.SummaryWriter`` writing into the run folder
+(``runs/<name>/``), so ``tensorboard --logdir runs`` shows every run side by side. Tags:
+
+- ``newton/residual/member_<m>``: relative residual of every Newton iteration of member m
+  (step = iteration count of that member; switch the y-axis to log scale);
+- ``newton/iterations``, ``increments``, ``cutbacks``, ``load_reached``, ``last_residual``:
+  one point per member (step = member index); ``newton/members_converged``;
+- ``newton/timing_s/<phase>``: seconds spent in residuals, tangents and linear solves;
+- ``newton/status`` (text): a table with one row per member; failed members are listed, never dropped.
+
+Figures are built with ``matplotlib.figure.Figure`` (no pyplot state, no display needed).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from matplotlib.figure import Figure
+from torch.utils.tensorboard import SummaryWriter
+from torch.utils.tensorboard.summary import hparams as hparams_summary
+
+from ..fem.elements import HEX20_FACES
+from ..fem.mesh import Mesh
+from ..fem.newton import Solution
+
+# A Quad8 face (corners 0-3, mid-edge nodes 4-7) as 6 triangles with the face's own orientation:
+# four corner triangles and the inner quad of mid-edge nodes, so curved edges show.
+_QUAD8_TRIANGLES = np.array([[0, 4, 7], [1, 5, 4], [2, 6, 5], [3, 7, 6], [4, 5, 6], [4, 6, 7]])
+
+
+def open_writer(run_dir: str | Path) -> SummaryWriter:
+    """A SummaryWriter writing event files directly into ``run_dir``."""
+    return SummaryWriter(log_dir=str(run_dir))
+
+
+def log_solution(writer: SummaryWriter, solution: Solution, tag: str = "newton") -> None:
+    """Log the Newton record of every member of ``solution`` (see the module docstring for tags)."""
+    N = len(solution.status)
+    width = len(str(max(N - 1, 0)))
+    for m, history in enumerate(solution.residual_history):
+        for k, value in enumerate(history):
+            writer.add_scalar(f"{tag}/residual/member_{m:0{width}d}", value, k)
+    per_member = {
+        "iterations": solution.iterations,
+        "increments": solution.increments,
+        "cutbacks": solution.cutbacks,
+        "load_reached": solution.load_reached,
+        "last_residual": solution.last_residual,
+    }
+    for name, values in per_member.items():
+        for m, value in enumerate(np.asarray(values, dtype=np.float64)):
+            writer.add_scalar(f"{tag}/{name}", value, m)
+    writer.add_scalar(f"{tag}/members_converged", int(np.sum(solution.status == "converged")), 0)
+    for phase, seconds in solution.timings.items():
+        writer.add_scalar(f"{tag}/timing_s/{phase}", seconds, 0)
+    writer.add_text(f"{tag}/status", status_table(solution), 0)
+
+
+def status_table(solution: Solution) -> str:
+    """Markdown table, one row per member: status, load reached, iterations, increments, cutbacks,
+    last relative residual."""
+    rows = [
+        "| member | status | load reached | iterations | increments | cutbacks | last residual |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for m, status in enumerate(solution.status):
+        rows.append(
+            f"| {m} | {status} | {solution.load_reached[m]:.4g} | {solution.iterations[m]} | "
+            f"{solution.increments[m]} | {solution.cutbacks[m]} | {solution.last_residual[m]:.2e} |"
+        )
+    return "\n".join(rows)
+
+
+def boundary_triangles(mesh: Mesh) -> np.ndarray:
+    """Outer surface of a Hex20 mesh as triangles (F, 3) of node indices, outward normals.
+
+    A brick face is on the boundary when no other brick shares its four corners; each such Quad8
+    is split into 6 triangles using its corner and mid-edge nodes.
+    """
+    faces = mesh.elements[:, HEX20_FACES].reshape(-1, 8)  # (6E, 8), node order of HEX20_FACES
+    keys = np.sort(faces[:, :4], axis=1)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    outer = faces[counts[inverse.ravel()] == 1]
+    # The HEX20_FACES order gives x_s x x_t pointing into the brick: reverse for outward normals.
+    return outer[:, _QUAD8_TRIANGLES][..., ::-1].reshape(-1, 3)
+
+
+def log_mesh(
+    writer: SummaryWriter,
+    tag: str,
+    mesh: Mesh,
+    u=None,
+    values=None,
+    step: int = 0,
+    colormap: str = "viridis",
+) -> None:
+    """Log the (deformed) outer surface of a Hex20 mesh for TensorBoard's mesh dashboard.
+
+    u: (n, 3) displacements in mm, n >= mesh.n_nodes (extra model nodes such as fiber nodes come
+    after the mesh nodes and are ignored); values: (n,) nodal scalars for the colors (default: the
+    displacement magnitude), mapped with a matplotlib colormap.
+    """
+    from matplotlib import colormaps
+
+    tri = boundary_triangles(mesh)
+    used, local = np.unique(tri, return_inverse=True)
+    x = mesh.nodes[used]
+    disp = np.zeros_like(x) if u is None else _numpy(u)[: mesh.n_nodes][used]
+    x = x + disp
+    v = np.linalg.norm(disp, axis=1) if values is None else _numpy(values)[: mesh.n_nodes][used]
+    span = np.nanmax(v) - np.nanmin(v) if v.size else 0.0
+    t = (v - np.nanmin(v)) / span if span > 0 else np.zeros_like(v)
+    colors = (255 * colormaps[colormap](np.nan_to_num(t))[:, :3]).astype(np.uint8)
+    writer.add_mesh(
+        tag,
+        vertices=torch.as_tensor(x, dtype=torch.float32)[None],
+        faces=torch.as_tensor(local.reshape(-1, 3), dtype=torch.int32)[None],
+        colors=torch.as_tensor(colors)[None],
+        global_step=step,
+    )
+
+
+def log_hparams(writer: SummaryWriter, hparams: dict, metrics: dict) -> None:
+    """Record the run's settings and headline numbers for TensorBoard's HParams dashboard.
+
+    Written into the writer's own event file (``add_hparams`` would open a sub-folder); values that
+    are not numbers, strings or booleans are stored as their ``str``.
+    """
+    clean = {k: v if isinstance(v, (bool, int, float, str)) else str(v) for k, v in hparams.items()}
+    metrics = {k: float(v) for k, v in metrics.items()}
+    for summary in hparams_summary(clean, metrics):
+        writer.file_writer.add_summary(summary)
+    for k, v in metrics.items():
+        writer.add_scalar(k, v, 0)
+
+
+def curves_figure(
+    x,
+    curves,
+    labels=None,
+    xlabel: str = "",
+    ylabel: str = "",
+    title: str = "",
+    failed=None,
+) -> Figure:
+    """One line per row of ``curves`` (k, len(x)) against ``x``; NaN ends a line (a member that
+    stopped); rows flagged in ``failed`` (k,) bool are dashed and marked where they stopped."""
+    x = _numpy(x)
+    curves = np.atleast_2d(_numpy(curves))
+    failed = np.zeros(curves.shape[0], dtype=bool) if failed is None else np.asarray(failed, dtype=bool)
+    fig = Figure(figsize=(6.0, 4.0), layout="constrained")
+    ax = fig.add_subplot()
+    for i, y in enumerate(curves):
+        label = None if labels is None else labels[i]
+        line, = ax.plot(x, y, ls="--" if failed[i] else "-", marker=".", label=label)
+        if failed[i] and np.isfinite(y).any():
+            last = np.flatnonzero(np.isfinite(y))[-1]
+            ax.plot(x[last], y[last], "x", color=line.get_color(), ms=9)
+    ax.set(xlabel=xlabel, ylabel=ylabel, title=title)
+    ax.grid(True, alpha=0.3)
+    if labels is not None and len(labels) <= 12:
+        ax.legend(fontsize="small")
+    return fig
+
+
+def log_figure(writer: SummaryWriter, tag: str, fig: Figure, path: str | Path | None = None, step: int = 0) -> None:
+    """Save ``fig`` as an image at ``path`` (if given, e.g. a PNG in the run folder) and log it."""
+    if path is not None:
+        fig.savefig(path, dpi=120)
+    writer.add_figure(tag, fig, step, close=False)
+
+
+def _numpy(values) -> np.ndarray:
+    if isinstance(values, torch.Tensor):
+        values = values.detach().cpu().numpy()
+    return np.asarray(values, dtype=np.float64)
