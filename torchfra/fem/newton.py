@@ -55,7 +55,8 @@ class Solution:
 
     u: (N, T, n_nodes, 3) displacements (NaN where a member did not reach that load);
     a: (N, T, n_red) reduced unknowns; status (N,): "converged" / "diverged";
-    load_reached (N,); iterations, increments, cutbacks (N,); last_residual (N,) relative;
+    load_reached (N,); iterations, increments, cutbacks (N,); last_residual (N,): the last finite
+    relative residual (NaN marks inadmissible states in ``residual_history``);
     residual_history: per member, the relative residual of every Newton iteration.
     """
 
@@ -164,7 +165,8 @@ def solve(
                     continue
                 ls_pending[m] = False
             history[m].append(float(rel[j]))
-            last_res[m] = rel[j]
+            if np.isfinite(rel[j]):
+                last_res[m] = rel[j]
             E_ref = max(E0[m], scale[j] * float(torch.linalg.norm(a[m] - a_conv[m])))
             energy_ok = it[m] == 0 or de[m] <= opt.etol * E_ref
             stagnated = it[m] > 0 and rel[j] < opt.stagnation_tol and rel[j] > 0.5 * rel_prev[m]

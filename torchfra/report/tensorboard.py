@@ -139,30 +139,32 @@ def log_hparams(writer: SummaryWriter, hparams: dict, metrics: dict) -> None:
 
 def curves_figure(
     x,
-    curves,
+    panels: dict,
     labels=None,
     xlabel: str = "",
-    ylabel: str = "",
     title: str = "",
     failed=None,
 ) -> Figure:
-    """One line per row of ``curves`` (k, len(x)) against ``x``; NaN ends a line (a member that
-    stopped); rows flagged in ``failed`` (k,) bool are dashed and marked where they stopped."""
+    """Side-by-side panels of curves against ``x``: ``panels`` maps a y-axis label to an array
+    (k, len(x)) with one row per curve (e.g. per member); NaN ends a line (a member that stopped).
+    Rows flagged in ``failed`` (k,) bool are dashed and marked with x where they stopped."""
     x = _numpy(x)
-    curves = np.atleast_2d(_numpy(curves))
-    failed = np.zeros(curves.shape[0], dtype=bool) if failed is None else np.asarray(failed, dtype=bool)
-    fig = Figure(figsize=(6.0, 4.0), layout="constrained")
-    ax = fig.add_subplot()
-    for i, y in enumerate(curves):
-        label = None if labels is None else labels[i]
-        line, = ax.plot(x, y, ls="--" if failed[i] else "-", marker=".", label=label)
-        if failed[i] and np.isfinite(y).any():
-            last = np.flatnonzero(np.isfinite(y))[-1]
-            ax.plot(x[last], y[last], "x", color=line.get_color(), ms=9)
-    ax.set(xlabel=xlabel, ylabel=ylabel, title=title)
-    ax.grid(True, alpha=0.3)
+    fig = Figure(figsize=(5.0 * len(panels), 4.0), layout="constrained")
+    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    for ax, (ylabel, curves) in zip(axes, panels.items()):
+        curves = np.atleast_2d(_numpy(curves))
+        bad = np.zeros(curves.shape[0], dtype=bool) if failed is None else np.asarray(failed, dtype=bool)
+        for i, y in enumerate(curves):
+            label = None if labels is None else labels[i]
+            line, = ax.plot(x, y, ls="--" if bad[i] else "-", marker=".", label=label)
+            if bad[i] and np.isfinite(y).any():
+                last = np.flatnonzero(np.isfinite(y))[-1]
+                ax.plot(x[last], y[last], "x", color=line.get_color(), ms=9)
+        ax.set(xlabel=xlabel, ylabel=ylabel)
+        ax.grid(True, alpha=0.3)
     if labels is not None and len(labels) <= 12:
-        ax.legend(fontsize="small")
+        axes[0].legend(fontsize="small")
+    fig.suptitle(title)
     return fig
 
 

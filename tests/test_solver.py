@@ -1,0 +1,113 @@
+"""Solver-level checks: pressure forms agree, batches equal separate solves, rigid faces stay rigid,
+failing members are reported while the others finish."""
+import numpy as np
+import pytest
+import torch
+
+from helpers import assemble_dense, block_with_cavity
+from torchfra import fem
+from torchfra.geometry.structured import box_mesh
+
+
+def test_cavity_volume_closed_form():
+    """Volume enclosed by the cavity surface: exactly the removed 1 mm^3 element, and det(F) times
+    it under an affine deformation (3x3 Gauss is exact for the Quad8 volume integrand)."""
+    mesh = block_with_cavity()
+    term = fem.CavityPressure(mesh, "cavity")
+    F = np.array([[1.2, 0.1, 0.0], [0.05, 0.9, 0.2], [0.0, -0.1, 1.1]])
+    u = torch.as_tensor(np.stack([np.zeros_like(mesh.nodes), mesh.nodes @ (F - np.eye(3)).T]))
+    V = term.cavity_volume(u).numpy()
+    assert np.allclose(V, [1.0, np.linalg.det(F)], rtol=1e-13)
+
+
+def test_cavity_potential_equals_follower_load():
+    """On a closed surface, P dV/dx (conservative form) equals the follower traction P J F^-T N
+    integrated (both residuals and load stiffnesses), for an arbitrary deformed state."""
+    mesh = block_with_cavity()
+    params = {"P": torch.tensor([0.3, 1.1])}
+    lam = torch.tensor([1.0, 0.5])
+    u = 0.05 * torch.randn(2, mesh.n_nodes, 3, generator=torch.Generator().manual_seed(0))
+    n = 3 * mesh.n_nodes
+    r1, K1 = assemble_dense(fem.CavityPressure(mesh, "cavity"), u, params, lam, n)
+    r2, K2 = assemble_dense(fem.FollowerPressure(mesh, "cavity"), u, params, lam, n)
+    assert (r1 - r2).abs().max() < 1e-13 * r1.abs().max()
+    assert (K1 - K2).abs().max() < 1e-13 * K1.abs().max()
+    assert (K1 - K1.transpose(1, 2)).abs().max() < 1e-13 * K1.abs().max()
+
+
+def _cavity_model(mesh, pressure_term):
+    model = fem.Model(mesh)
+    model.add(fem.Hex20Solid(mesh, fem.NeoHookean()))
+    model.add(pressure_term)
+    model.clamp("zmin")
+    return model
+
+
+def test_cavity_and_follower_solutions_agree():
+    mesh = block_with_cavity()
+    params = {"C10": torch.tensor([0.1]), "D1": torch.tensor([0.05]), "P": torch.tensor([0.1])}
+    sols = [
+        fem.solve(_cavity_model(mesh, t(mesh, "cavity")), params, [0.5, 1.0])
+        for t in (fem.CavityPressure, fem.FollowerPressure)
+    ]
+    assert all(s.status[0] == "converged" for s in sols)
+    du = (sols[0].u - sols[1].u).abs().max() / sols[0].u.abs().max()
+    assert du < 1e-9
+    # the cavity grows monotonically with pressure
+    cav = fem.CavityPressure(mesh, "cavity")
+    V = cav.cavity_volume(sols[0].u[0])
+    assert V[0] > 1.0 and V[1] > V[0]
+
+
+def _bending_model(mesh):
+    model = fem.Model(mesh)
+    model.add(fem.Hex20Solid(mesh, fem.NeoHookean()))
+    model.add(fem.FollowerPressure(mesh, "ymax", pressure="P"))
+    model.clamp("zmin")
+    model.rigid("zmax")
+    return model
+
+
+def test_batch_equals_separate_solves():
+    """N members in one batch equal N separate solves to 1e-10."""
+    mesh = box_mesh((2.0, 2.0, 6.0), (2, 2, 3))
+    params = {
+        "C10": torch.tensor([0.05, 0.08, 0.12]),
+        "D1": torch.tensor([0.5, 0.2, 1.0]),
+        "P": torch.tensor([0.002, 0.003, 0.005]),
+    }
+    batch = fem.solve(_bending_model(mesh), params, [0.5, 1.0])
+    assert (batch.status == "converged").all()
+    for m in range(3):
+        one = fem.solve(_bending_model(mesh), {k: v[m : m + 1] for k, v in params.items()}, [0.5, 1.0])
+        assert (one.u[0] - batch.u[m]).abs().max() / batch.u[m].abs().max() < 1e-10
+        assert one.iterations[0] == batch.iterations[m]
+
+
+def test_rigid_face_moves_rigidly():
+    """The rigid top face: distances between its nodes are preserved and it stays planar."""
+    mesh = box_mesh((2.0, 2.0, 6.0), (2, 2, 3))
+    params = {"C10": torch.tensor([0.05]), "D1": torch.tensor([0.2]), "P": torch.tensor([0.004])}
+    sol = fem.solve(_bending_model(mesh), params, [1.0])
+    top = mesh.node_sets["zmax"]
+    x = mesh.nodes[top] + sol.u[0, -1, top].numpy()
+    X = mesh.nodes[top]
+    d = lambda p: np.linalg.norm(p[:, None] - p[None], axis=-1)  # noqa: E731
+    assert np.abs(d(x) - d(X)).max() < 1e-12
+    centred = x - x.mean(0)
+    assert np.linalg.svd(centred, compute_uv=False)[-1] < 1e-12
+    assert np.abs(sol.u[0, -1, top, 1]).max() > 0.5  # and it really moved: the block bends
+
+
+def test_failing_member_reported_others_finish():
+    """A member loaded far beyond what the body can take is flagged 'diverged' with the load it
+    reached and its last residual; the other members converge to their own answers."""
+    mesh = box_mesh((2.0, 2.0, 6.0), (2, 2, 3))
+    params = {"C10": torch.tensor([0.05, 0.05]), "D1": torch.tensor([0.2, 0.2]), "P": torch.tensor([0.003, 50.0])}
+    opts = fem.NewtonOptions(min_increment=1e-3, max_iterations=10)
+    sol = fem.solve(_bending_model(mesh), params, [0.5, 1.0], opts)
+    assert sol.status.tolist() == ["converged", "diverged"]
+    assert sol.load_reached[1] < 1.0 and np.isfinite(sol.last_residual[1])
+    assert torch.isnan(sol.u[1, -1]).all()
+    alone = fem.solve(_bending_model(mesh), {k: v[:1] for k, v in params.items()}, [0.5, 1.0], opts)
+    assert (alone.u[0] - sol.u[0]).abs().max() < 1e-10 * sol.u[0].abs().max()
