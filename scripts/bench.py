@@ -121,7 +121,7 @@ PILOT_DIVISIONS = (2, 2, 4)
 FULL = Config(divisions=[(8, 8, 16), (16, 16, 16)], members=[1, 100])
 # Tiny meshes; the small memory budget makes the member-chunked paths run.
 QUICK = Config(divisions=[(2, 2, 4), (2, 2, 8)], members=[1, 4], repeat_budget_s=1.0, chunk_budget_s=3.0,
-               newton_budget_s=15.0, memory_budget_mb=4.0, pilot_members=2)
+               newton_budget_s=12.0, memory_budget_mb=4.0, pilot_members=2)
 
 _START = time.perf_counter()
 

@@ -103,11 +103,11 @@ def test_failing_member_reported_others_finish():
     """A member loaded far beyond what the body can take is flagged 'diverged' with the load it
     reached and its last residual; the other members converge to their own answers."""
     mesh = box_mesh((2.0, 2.0, 6.0), (2, 2, 3))
-    params = {"C10": torch.tensor([0.05, 0.05]), "D1": torch.tensor([0.2, 0.2]), "P": torch.tensor([0.003, 50.0])}
-    opts = fem.NewtonOptions(min_increment=1e-3, max_iterations=10)
+    params = {"C10": torch.tensor([0.05, 0.05]), "D1": torch.tensor([0.2, 0.2]), "P": torch.tensor([0.003, 0.5])}
+    opts = fem.NewtonOptions(min_increment=1e-4, max_iterations=10)
     sol = fem.solve(_bending_model(mesh), params, [0.5, 1.0], opts)
     assert sol.status.tolist() == ["converged", "diverged"]
-    assert sol.load_reached[1] < 1.0 and np.isfinite(sol.last_residual[1])
+    assert 0 < sol.load_reached[1] < 1.0 and np.isfinite(sol.last_residual[1])
     assert torch.isnan(sol.u[1, -1]).all()
     alone = fem.solve(_bending_model(mesh), {k: v[:1] for k, v in params.items()}, [0.5, 1.0], opts)
     assert (alone.u[0] - sol.u[0]).abs().max() < 1e-10 * sol.u[0].abs().max()
