@@ -107,6 +107,10 @@ class Material:
         h, g = vmap(jacfwd(dpsi_dp, has_aux=True))(x, pv)
         return g.reshape(shape), h[:, 9].reshape(shape)
 
+    def pressure_gradient(self, F, p, prm) -> torch.Tensor:
+        """``d2psi/dFdp`` at Gauss points (..., 3, 3)."""
+        return self.derivatives(F, p, prm).Fp
+
     def derivatives(self, F, p, prm, with_energy: bool = False) -> PointDerivatives:
         """Derived path: gradient and hessian of psi at each Gauss point by ``vmap(jacfwd(grad))``."""
         shape, x, pv = self._stack(F, p, prm)
@@ -160,6 +164,9 @@ class NeoHookean(Material):
             return super().pressure_coefficients(F, prm)
         J = det3(F)
         return J - 1.0, (-0.5 * prm["D1"]).expand_as(J)
+
+    def pressure_gradient(self, F, p, prm):
+        return cofactor(F) if self.fast else super().pressure_gradient(F, p, prm)
 
     def derivatives(self, F, p, prm, with_energy: bool = False) -> PointDerivatives:
         if not self.fast:

@@ -23,6 +23,7 @@ class Evaluation:
     ok: torch.Tensor
     energy: torch.Tensor | None = None
     tangents: list[sp.csr_matrix] | None = None
+    rhs: torch.Tensor | None = None  # condensed residual that goes with the tangents (local unknowns)
 
 
 class Model:
@@ -172,16 +173,26 @@ class Model:
         """a: (N, n_red) -> nodal displacements (N, n_nodes, 3)."""
         return self.finalize().dofmap.expand(a, load_factor).reshape(a.shape[0], -1, 3)
 
-    def evaluate(self, a, params, load_factor, tangent=False, energy=False) -> Evaluation:
-        """Reduced residual (and tangents, energy) of members ``a: (N, n_red)``."""
+    def initial_local(self, N: int) -> list[torch.Tensor | None]:
+        """Element-local unknowns of every term at the unloaded state (zeros), (N, B, L) or None."""
+        return [torch.zeros(N, t.dofs.shape[0], t.n_local, dtype=self.dtype) if t.n_local else None for t in self.terms]
+
+    def evaluate(self, a, params, load_factor, tangent=False, energy=False, local=None) -> Evaluation:
+        """Reduced residual (and tangents, energy) of members ``a: (N, n_red)``.
+
+        local: per term, its element-local unknowns (N, B, L) carried by Newton, or None to use
+        their stationary values for ``a``.
+        """
         self.finalize()
         N = a.shape[0]
+        local = local or [None] * len(self.terms)
         if tangent:
             chunk = self._chunk_size()
             if N > chunk:
                 parts = [
                     self.evaluate(a[i : i + chunk], {k: v[i : i + chunk] for k, v in params.items()},
-                                  load_factor[i : i + chunk], tangent, energy)
+                                  load_factor[i : i + chunk], tangent, energy,
+                                  [None if l is None else l[i : i + chunk] for l in local])
                     for i in range(0, N, chunk)
                 ]
                 return Evaluation(
@@ -189,18 +200,23 @@ class Model:
                     torch.cat([p.ok for p in parts]),
                     torch.cat([p.energy for p in parts]) if energy else None,
                     [K for p in parts for K in p.tangents],
+                    torch.cat([p.rhs for p in parts]),
                 )
         u = self.displacement(a, load_factor)
         n = 3 * self.n_nodes
         r_full = torch.zeros(N, n, dtype=a.dtype)
+        rhs_full = torch.zeros(N, n, dtype=a.dtype)
         scale = torch.zeros(N, dtype=a.dtype)
         ok = torch.ones(N, dtype=torch.bool)
         W = torch.zeros(N, dtype=a.dtype) if energy else None
         blocks = []
-        for t, dofs in zip(self.terms, self._dofs):
-            out = t.evaluate(u, params, load_factor, tangent=tangent, energy=energy)
+        for t, dofs, loc in zip(self.terms, self._dofs, local):
+            kw = {"local": loc} if t.n_local else {}
+            out = t.evaluate(u, params, load_factor, tangent=tangent, energy=energy, **kw)
             r_t = torch.zeros(N, n, dtype=a.dtype).index_add_(1, dofs, out.fe.reshape(N, -1))
             r_full += r_t
+            fe_c = out.fe if out.fe_condensed is None else out.fe_condensed
+            rhs_full.index_add_(1, dofs, fe_c.reshape(N, -1))
             scale = torch.maximum(scale, torch.linalg.norm(r_t, dim=1))
             ok &= out.ok
             if energy:
@@ -209,8 +225,18 @@ class Model:
                 W += out.energy
             blocks.append(out.Ke)
         r = self.dofmap.reduce(r_full, a)
+        rhs = self.dofmap.reduce(rhs_full, a)
         Ks = self._reduced_tangents(a, r_full, blocks) if tangent else None
-        return Evaluation(r, scale, ok, W, Ks)
+        return Evaluation(r, scale, ok, W, Ks, rhs)
+
+    def local_update(self, a, da, params, load_factor, local) -> list[torch.Tensor | None]:
+        """Newton update of the element-local unknowns that goes with the step ``a -> a + da``."""
+        u = self.displacement(a, load_factor)
+        du = self.displacement(a + da, load_factor) - u
+        return [
+            None if loc is None else loc + t.local_update(u, params, loc, du)
+            for t, loc in zip(self.terms, local)
+        ]
 
     def nodal_forces(self, u: torch.Tensor, params, load_factor, kinds=("internal",)) -> torch.Tensor:
         """Sum of the nodal forces of the terms of the given kinds, (N, n_nodes, 3) in N.

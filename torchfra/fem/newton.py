@@ -81,6 +81,29 @@ def _members(params, idx):
     return {k: v[idx] for k, v in params.items()}
 
 
+class _Packing:
+    """Per-member state vector ``x = [a, local unknowns of every term (flattened)]``, so that
+    predictors, cutbacks and line search treat displacements and element pressures alike."""
+
+    def __init__(self, model: Model):
+        self.n = model.n_red
+        self.shapes = [(t.dofs.shape[0], t.n_local) if t.n_local else None for t in model.terms]
+        self.size = self.n + sum(b * l for b, l in filter(None, self.shapes))
+
+    def split(self, x: torch.Tensor):
+        local, i = [], self.n
+        for shape in self.shapes:
+            if shape is None:
+                local.append(None)
+            else:
+                local.append(x[:, i : i + shape[0] * shape[1]].reshape(x.shape[0], *shape))
+                i += shape[0] * shape[1]
+        return x[:, : self.n], local
+
+    def join(self, a: torch.Tensor, local) -> torch.Tensor:
+        return torch.cat([a] + [l.reshape(a.shape[0], -1) for l in local if l is not None], dim=1)
+
+
 def solve(
     model: Model,
     params: dict[str, torch.Tensor],
@@ -98,10 +121,11 @@ def solve(
     if outs.size == 0 or outs[0] <= 0 or outs[-1] > 1 + 1e-12:
         raise ValueError(f"load factors must lie in (0, 1], got {load_factors}")
     T, n = outs.size, model.n_red
+    pack = _Packing(model)
     timings = {"residual": 0.0, "tangent": 0.0, "solve": 0.0}
 
-    a = torch.zeros(N, n, dtype=dtype)
-    a_conv, a_prev = a.clone(), a.clone()
+    x = torch.zeros(N, pack.size, dtype=dtype)
+    x_conv, x_prev = x.clone(), x.clone()
     lam_conv, lam_prev = np.zeros(N), np.zeros(N)
     dlam = np.full(N, opt.initial_increment)
     nxt = np.zeros(N, dtype=np.int64)
@@ -115,14 +139,16 @@ def solve(
     history: list[list[float]] = [[] for _ in range(N)]
     a_out = torch.full((N, T, n), float("nan"), dtype=dtype)
 
-    def evaluate(idx, aa, tangent=False):
+    def evaluate(idx, xx, tangent=False):
         t0 = time.perf_counter()
-        ev = model.evaluate(aa, _members(params, idx), torch.as_tensor(lam[idx], dtype=dtype), tangent=tangent)
+        aa, local = pack.split(xx)
+        ev = model.evaluate(aa, _members(params, idx), torch.as_tensor(lam[idx], dtype=dtype), tangent=tangent,
+                            local=local)
         timings["tangent" if tangent else "residual"] += time.perf_counter() - t0
         return ev
 
     def predictor(m):
-        return a_conv[m] + (lam[m] - lam_conv[m]) * velocity[m]
+        return x_conv[m] + (lam[m] - lam_conv[m]) * velocity[m]
 
     def cut(m):
         cutbacks[m] += 1
@@ -132,24 +158,24 @@ def solve(
             return
         dlam[m], lam[m], it[m] = step, lam_conv[m] + step, 0
         ls_pending[m] = False
-        a[m] = predictor(m)
+        x[m] = predictor(m)
 
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=100, desc=f"Newton, {N} members", unit="% load")
+        bar = tqdm(total=100, desc=f"Newton, {N} members", unit="% load", bar_format="{l_bar}{bar}| {n:.0f}/{total}%")
 
-    # Euler predictor for the first increment: da/dlambda = -K^-1 dr/dlambda at the unloaded state.
-    velocity = _euler_velocity(model, params, dtype)
-    a = torch.as_tensor(lam, dtype=dtype)[:, None] * velocity
-    ls_base, ls_da = torch.zeros(N, n, dtype=dtype), torch.zeros(N, n, dtype=dtype)
+    # Euler predictor for the first increment: dx/dlambda = -K^-1 dr/dlambda at the unloaded state.
+    velocity = _euler_velocity(model, pack, params, dtype)
+    x = torch.as_tensor(lam, dtype=dtype)[:, None] * velocity
+    ls_base, ls_dx = torch.zeros_like(x), torch.zeros_like(x)
     ls_alpha, ls_count = np.ones(N), np.zeros(N, dtype=np.int64)
     ls_pending, r_prev, rel_prev = np.zeros(N, dtype=bool), np.zeros(N), np.full(N, np.inf)
     idx = np.flatnonzero(active)
     while idx.size:
-        ev = evaluate(idx, a[idx])
-        rnorm = torch.linalg.norm(ev.residual, dim=1).numpy()
+        ev = evaluate(idx, x[idx])
+        rnorm = torch.maximum(torch.linalg.norm(ev.residual, dim=1), torch.linalg.norm(ev.rhs, dim=1)).numpy()
         scale = ev.force_scale.numpy()
         rel = rnorm / np.maximum(scale, 1e-300)
         ok = ev.ok.numpy() & np.isfinite(rnorm)
@@ -161,23 +187,23 @@ def solve(
                 if (not ok[j] or rnorm[j] > opt.line_search_growth * r_prev[m]) and ls_count[m] < opt.line_search_steps:
                     ls_alpha[m] *= 0.5
                     ls_count[m] += 1
-                    a[m] = ls_base[m] + ls_alpha[m] * ls_da[m]
+                    x[m] = ls_base[m] + ls_alpha[m] * ls_dx[m]
                     continue
                 ls_pending[m] = False
             history[m].append(float(rel[j]))
             if np.isfinite(rel[j]):
                 last_res[m] = rel[j]
-            E_ref = max(E0[m], scale[j] * float(torch.linalg.norm(a[m] - a_conv[m])))
+            E_ref = max(E0[m], scale[j] * float(torch.linalg.norm(x[m, :n] - x_conv[m, :n])))
             energy_ok = it[m] == 0 or de[m] <= opt.etol * E_ref
             stagnated = it[m] > 0 and rel[j] < opt.stagnation_tol and rel[j] > 0.5 * rel_prev[m]
             rel_prev[m] = rel[j]
             if ok[j] and ((force_ok[j] and energy_ok) or stagnated):
                 increments[m] += 1
                 lam_prev[m], lam_conv[m] = lam_conv[m], lam[m]
-                a_prev[m], a_conv[m] = a_conv[m], a[m].clone()
-                velocity[m] = (a_conv[m] - a_prev[m]) / (lam_conv[m] - lam_prev[m])
+                x_prev[m], x_conv[m] = x_conv[m], x[m].clone()
+                velocity[m] = (x_conv[m] - x_prev[m]) / (lam_conv[m] - lam_prev[m])
                 if lam[m] == outs[nxt[m]]:
-                    a_out[m, nxt[m]] = a[m]
+                    a_out[m, nxt[m]] = x[m, :n]
                     nxt[m] += 1
                     if nxt[m] == T:
                         active[m] = False
@@ -186,7 +212,7 @@ def solve(
                     dlam[m] = min(dlam[m] * opt.growth, opt.max_increment)
                 lam[m] = min(lam_conv[m] + dlam[m], outs[nxt[m]])
                 it[m] = 0
-                a[m] = predictor(m)
+                x[m] = predictor(m)
             elif not ok[j] or it[m] >= opt.max_iterations:
                 cut(m)
             else:
@@ -194,31 +220,39 @@ def solve(
                 r_prev[m] = rnorm[j]
         if need:
             need = np.asarray(need)
-            evt = evaluate(need, a[need], tangent=True)
+            evt = evaluate(need, x[need], tangent=True)
             t0 = time.perf_counter()
-            for j, m in enumerate(need):
+            da = torch.full((need.size, n), float("nan"), dtype=dtype)
+            for j in range(need.size):
                 try:
                     lu = spla.splu(evt.tangents[j].tocsc())
-                    da = torch.as_tensor(lu.solve(-evt.residual[j].numpy()))
-                except RuntimeError:  # exactly singular tangent
-                    da = torch.full((n,), float("nan"), dtype=dtype)
-                dot = abs(float(da @ evt.residual[j]))
+                    da[j] = torch.as_tensor(lu.solve(-evt.rhs[j].numpy()))
+                except RuntimeError:  # exactly singular tangent: the member is cut back below
+                    pass
+            timings["solve"] += time.perf_counter() - t0
+            a_need, local_need = pack.split(x[need])
+            good = torch.isfinite(da).all(dim=1)
+            da_safe = torch.where(good[:, None], da, torch.zeros_like(da))
+            new_local = model.local_update(a_need, da_safe, _members(params, need),
+                                           torch.as_tensor(lam[need], dtype=dtype), local_need)
+            dx = pack.join(da_safe, [None if l is None else nl - l for nl, l in zip(new_local, local_need)])
+            for j, m in enumerate(need):
+                dot = abs(float(da_safe[j] @ evt.rhs[j]))
                 if it[m] == 0:
                     E0[m] = dot
                 de[m] = dot
                 it[m] += 1
                 iterations[m] += 1
-                if not torch.isfinite(da).all():
+                if not good[j]:
                     cut(m)
                     continue
-                ls_base[m], ls_da[m], ls_alpha[m], ls_count[m] = a[m], da, 1.0, 0
+                ls_base[m], ls_dx[m], ls_alpha[m], ls_count[m] = x[m], dx[j], 1.0, 0
                 ls_pending[m] = True
-                a[m] = a[m] + da
-            timings["solve"] += time.perf_counter() - t0
+                x[m] = x[m] + dx[j]
         if bar is not None:
             act = np.flatnonzero(active)
             done = 100 * (lam_conv[act].min() if act.size else 1.0)
-            bar.update(max(0.0, round(done - bar.n, 1)))
+            bar.update(max(0.0, done - bar.n))
         idx = np.flatnonzero(active)
     if bar is not None:
         bar.close()
@@ -233,18 +267,24 @@ def solve(
                     last_res, history, timings)
 
 
-
-def _euler_velocity(model: Model, params, dtype, h: float = 1e-6) -> torch.Tensor:
-    """``da/dlambda`` at a = 0, lambda = 0 for every member (central difference in lambda)."""
+def _euler_velocity(model: Model, pack: _Packing, params, dtype, h: float = 1e-6) -> torch.Tensor:
+    """``dx/dlambda`` at the unloaded state for every member (central difference in lambda)."""
     N = next(iter(params.values())).shape[0]
     a0 = torch.zeros(N, model.n_red, dtype=dtype)
+    local0 = model.initial_local(N)
     lam = torch.zeros(N, dtype=dtype)
-    ev = model.evaluate(a0, params, lam, tangent=True)
-    dr = (model.evaluate(a0, params, lam + h).residual - model.evaluate(a0, params, lam - h).residual) / (2 * h)
+    ev = model.evaluate(a0, params, lam, tangent=True, local=local0)
+    dr = (model.evaluate(a0, params, lam + h, local=local0).rhs - model.evaluate(a0, params, lam - h, local=local0).rhs) / (2 * h)
     v = torch.zeros_like(a0)
     for m in range(N):
         try:
             v[m] = torch.as_tensor(spla.splu(ev.tangents[m].tocsc()).solve(-dr[m].numpy()))
         except RuntimeError:  # singular initial tangent: start from zero, Newton will tell
             v[m] = 0.0
-    return v
+    if pack.size == model.n_red:
+        return v
+    # dp/dlambda = -K_pp^-1 K_pu du/dlambda, du/dlambda including prescribed displacements
+    du = (model.displacement(h * v, lam + h) - model.displacement(a0, lam)) / h
+    u0 = model.displacement(a0, lam)
+    local_v = [None if l is None else t.local_update(u0, params, l, du) for t, l in zip(model.terms, local0)]
+    return pack.join(v, local_v)

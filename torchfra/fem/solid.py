@@ -55,58 +55,112 @@ class Hex20Solid(Term):
     def validate(self, params):
         self.material.validate(params)
 
-    def _pressure(self, F, prm):
-        """Condensed pressure at the Gauss points and -K_pp^-1 (hybrid) or -1/psi_pp (displacement)."""
-        d, h = self.material.pressure_coefficients(F, prm)
-        if self.formulation == "displacement":
-            return -d / h, -1.0 / h
-        w = self.wdet
-        Kpp = torch.einsum("eg,neg,gm,gk->nemk", w, h, self.Np, self.Np)
-        rp0 = torch.einsum("eg,neg,gm->nem", w, d, self.Np)
-        Kpp_inv = torch.linalg.inv(Kpp)
-        p_e = -torch.einsum("nemk,nek->nem", Kpp_inv, rp0)
-        return torch.einsum("gm,nem->neg", self.Np, p_e), -Kpp_inv
+    @property
+    def n_local(self) -> int:
+        """Element-local unknowns per element carried by Newton: the 4 pressure dofs (hybrid)."""
+        return 4 if self.formulation == "hybrid" else 0
 
-    def evaluate(self, u, params, load_factor, tangent=True, energy=False):
+    def _pressure_system(self, F, prm):
+        """Pressure equations of each element: ``K_pp`` (N, E, 4, 4), ``r_p0 = int N_p dpsi/dp(F, 0)``."""
+        d, h = self.material.pressure_coefficients(F, prm)
+        Kpp = torch.einsum("eg,neg,gm,gk->nemk", self.wdet, h, self.Np, self.Np)
+        rp0 = torch.einsum("eg,neg,gm->nem", self.wdet, d, self.Np)
+        return Kpp, rp0
+
+    def pressure_projection(self, u, params) -> torch.Tensor:
+        """Element pressure dofs stationary for the displacements u: (N, E, 4)."""
+        prm = {k: params[k][:, None, None] for k in self.param_names}
+        Kpp, rp0 = self._pressure_system(deformation_gradient(u[:, self.conn], self.dN_dX), prm)
+        return -torch.linalg.solve(Kpp, rp0)
+
+    def gauss_point_pressure(self, u, params) -> torch.Tensor:
+        """Condensed pressure variable ``p`` at the Gauss points (N, E, G) for displacements u (at
+        equilibrium, the value Newton converged to)."""
+        if self.formulation == "hybrid":
+            return torch.einsum("gm,nem->neg", self.Np, self.pressure_projection(u, params))
+        prm = {k: params[k][:, None, None] for k in self.param_names}
+        d0, h = self.material.pressure_coefficients(deformation_gradient(u[:, self.conn], self.dN_dX), prm)
+        return -d0 / h
+
+    def evaluate(self, u, params, load_factor, tangent=True, energy=False, local=None):
+        """``local``: element pressure dofs (N, E, 4) of the hybrid brick carried by Newton; None
+        projects them from u (the stationary value). With ``local`` the output also holds the
+        condensed residual ``r_u - K_up K_pp^-1 r_p`` that Newton solves with."""
         prm = {k: params[k][:, None, None] for k in self.param_names}
         F = deformation_gradient(u[:, self.conn], self.dN_dX)
         J = det3(F)
         ok = (J > 0).flatten(1).all(dim=1)
-        p, cond = self._pressure(F, prm)
-        d = self.material.derivatives(F, p, prm, with_energy=energy)
         w, dN = self.wdet, self.dN_dX
+        if self.formulation == "displacement":
+            d0, h = self.material.pressure_coefficients(F, prm)
+            p, cond = -d0 / h, -1.0 / h
+        else:
+            Kpp, rp0 = self._pressure_system(F, prm)
+            Kpp_inv = torch.linalg.inv(Kpp)
+            p_e = -torch.einsum("nemk,nek->nem", Kpp_inv, rp0) if local is None else local
+            p = torch.einsum("gm,nem->neg", self.Np, p_e)
+        d = self.material.derivatives(F, p, prm, with_energy=energy)
         N, E = F.shape[:2]
-        fe = torch.einsum("eg,negij,egaj->neai", w, d.P, dN).reshape(N, E, 60)
+        fe = torch.einsum("eg,negp->nep", w, _nodal_gradients(dN, d.P))
         psi = torch.einsum("eg,neg->n", w, d.psi) if energy else None
-        Ke = None
+        fe_condensed, Ke = None, None
+        if self.formulation == "hybrid":
+            G = torch.einsum("eg,gm,negp->nemp", w, self.Np, _nodal_gradients(dN, d.Fp))  # K_pu
+            if local is not None:
+                r_p = rp0 + torch.einsum("nemk,nek->nem", Kpp, p_e)  # psi is quadratic in p
+                fe_condensed = fe - torch.einsum("nemp,nemk,nek->nep", G, Kpp_inv, r_p)
         if tangent:
             A = d.A
             if self.formulation == "displacement":
                 A.add_pair(cond, d.Fp, d.Fp)
             Ke = _material_tangent(A, w, dN)
             if self.formulation == "hybrid":
-                G = torch.einsum("eg,gm,negkl,egbl->nembk", w, self.Np, d.Fp, dN).reshape(N, E, 4, 60)
-                Ke = Ke + torch.einsum("nema,nemk,nekb->neab", G, cond, G)
-        return TermOutput(fe, Ke, psi, ok)
+                Ke = Ke - torch.einsum("nema,nemk,nekb->neab", G, Kpp_inv, G)
+        return TermOutput(fe, Ke, psi, ok, fe_condensed)
+
+    def local_update(self, u, params, local, du) -> torch.Tensor:
+        """Newton update of the element pressure dofs for a displacement update ``du`` (N, n_nodes, 3):
+        ``dp = -K_pp^-1 (r_p + K_pu du_e)`` -> (N, E, 4)."""
+        prm = {k: params[k][:, None, None] for k in self.param_names}
+        F = deformation_gradient(u[:, self.conn], self.dN_dX)
+        Kpp, rp0 = self._pressure_system(F, prm)
+        r_p = rp0 + torch.einsum("nemk,nek->nem", Kpp, local)
+        Fp = self.material.pressure_gradient(F, torch.einsum("gm,nem->neg", self.Np, local), prm)
+        G = torch.einsum("eg,gm,negp->nemp", self.wdet, self.Np, _nodal_gradients(self.dN_dX, Fp))
+        rhs = r_p + torch.einsum("nemp,nep->nem", G, du[:, self.conn].flatten(2))
+        return -torch.linalg.solve(Kpp, rhs)
+
+
+def _nodal_gradients(dN: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
+    """``x[a i] = sum_J dN_aJ X_iJ`` for every Gauss point: dN (E, G, 20, 3), X (N, E, G, 3, 3)
+    -> (N, E, G, 60)."""
+    return torch.matmul(dN, X.transpose(-1, -2)).flatten(-2)
 
 
 def _material_tangent(A: GaussPointTangent, w: torch.Tensor, dN: torch.Tensor) -> torch.Tensor:
-    """Element tangent ``K[a i, b k] = sum_g w dN_aJ A_iJkL dN_bL`` -> (N, E, 60, 60)."""
+    """Element tangent ``K[a i, b k] = sum_g w dN_aJ A_iJkL dN_bL`` -> (N, E, 60, 60).
+
+    The structured form is contracted without the 81-entry tensor: all rank-one pairs of all Gauss
+    points stack into one ``(60 x 8R) @ (8R x 60)`` product per element (one batched matmul).
+    """
     if A.dense is not None:
         N, E = A.dense.shape[:2]
         AdN = torch.einsum("negijkl,egbl->negijbk", A.dense, dN)
         return torch.einsum("eg,egaj,negijbk->neaibk", w, dN, AdN).reshape(N, E, 60, 60)
-    N, E = A.c.shape[:2]
-    nodal = torch.einsum("eg,neg,egaj,egbj->neab", w, A.c, dN, dN)
+    N, E, G = A.c.shape
     eye = torch.eye(3, dtype=w.dtype, device=w.device)
-    Ke = torch.einsum("neab,ik->neaibk", nodal, eye).reshape(N, E, 60, 60)
-    for s, X, Y in A.pairs:
-        x = torch.einsum("egaj,negij->negai", dN, X).reshape(N, E, -1, 60)
-        y = torch.einsum("egaj,negij->negai", dN, Y).reshape(N, E, -1, 60)
-        Ke = Ke + torch.einsum("neg,negp,negq->nepq", w * s, x, y)
+    left = [(w * s)[..., None] * _nodal_gradients(dN, X) for s, X, _ in A.pairs]
+    right = [_nodal_gradients(dN, Y) for _, _, Y in A.pairs]
+    Ke = torch.matmul(torch.cat(left, dim=2).transpose(-1, -2), torch.cat(right, dim=2))
+    Ke6 = Ke.view(N, E, 20, 3, 20, 3)
     if A.swap is not None:
         t, H = A.swap
-        h = torch.einsum("egaj,negkj->negak", dN, H).reshape(N, E, -1, 60)
-        swap = torch.einsum("neg,negp,negq->nepq", w * t, h, h).reshape(N, E, 20, 3, 20, 3)
-        Ke = Ke + swap.permute(0, 1, 2, 5, 4, 3).reshape(N, E, 60, 60)
+        h = _nodal_gradients(dN, H)  # h[a k] = dN_aJ H_kJ
+        swap = torch.matmul(((w * t)[..., None] * h).transpose(-1, -2), h).view(N, E, 20, 3, 20, 3)
+        Ke6 += swap.permute(0, 1, 2, 5, 4, 3)
+    # c d_ik d_JL: a scalar nodal matrix on the three diagonal blocks
+    dNc = ((w * A.c)[..., None, None] * dN).permute(0, 1, 3, 2, 4).reshape(N, E, 20, G * 3)
+    nodal = torch.matmul(dNc, dN.permute(0, 2, 1, 3).reshape(1, E, 20, G * 3).transpose(-1, -2)[0])
+    for i in range(3):
+        Ke6[:, :, :, i, :, i] += nodal
     return Ke

@@ -20,12 +20,16 @@ import torch
 @dataclass
 class TermOutput:
     """Block residuals ``fe`` (N, B, D), tangents ``Ke`` (N, B, D, D) or None, energy (N,) or None,
-    and ``ok`` (N,): False where the member's state is inadmissible (e.g. det F <= 0)."""
+    and ``ok`` (N,): False where the member's state is inadmissible (e.g. det F <= 0).
+
+    Terms with element-local unknowns (hybrid pressure) return ``Ke`` condensed and, when the
+    local unknowns are given, ``fe_condensed`` = the right-hand side that goes with it."""
 
     fe: torch.Tensor
     Ke: torch.Tensor | None
     energy: torch.Tensor | None
     ok: torch.Tensor
+    fe_condensed: torch.Tensor | None = None
 
 
 class Term:
@@ -37,6 +41,7 @@ class Term:
 
     kind: str = "internal"
     conservative: bool = True
+    n_local: int = 0  # element-local unknowns per block carried by Newton (condensed per block)
     param_names: tuple[str, ...] = ()
     dofs: np.ndarray  # (B, D) global dof indices
 

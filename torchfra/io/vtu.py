@@ -50,8 +50,7 @@ def element_fields(solid: Hex20Solid, u: torch.Tensor, params: dict[str, torch.T
     prm = {k: params[k][:, None, None] for k in solid.param_names}
     with torch.no_grad():
         F = deformation_gradient(u[:, solid.conn], solid.dN_dX)  # (N, E, G, 3, 3)
-        # The condensed pressure must be the solver's own; the term owns that projection.
-        p, _ = solid._pressure(F, prm)
+        p = solid.gauss_point_pressure(u, params)
         P = solid.material.derivatives(F, p, prm).P
         tau = P @ F.transpose(-1, -2)  # Kirchhoff stress J sigma
         J = det3(F)
