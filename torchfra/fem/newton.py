@@ -22,9 +22,9 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse.linalg as spla
 import torch
 
+from .linsolve import Factorization, SingularMatrixError
 from .model import Model
 
 
@@ -42,6 +42,7 @@ class NewtonOptions:
     cutback: float = 0.25
     stagnation_tol: float = 1e-7
     line_search_steps: int = 4
+    linear_solver: str = "auto"  # "superlu", "pardiso" (optional extra) or "auto" (pardiso if installed)
     line_search_growth: float = 1e6  # backtrack when ||r|| grows more than this (near-incompressible
     # Newton steps legitimately raise ||r|| by orders of magnitude before converging quadratically)
 
@@ -167,7 +168,7 @@ def solve(
         bar = tqdm(total=100, desc=f"Newton, {N} members", unit="% load", bar_format="{l_bar}{bar}| {n:.0f}/{total}%")
 
     # Euler predictor for the first increment: dx/dlambda = -K^-1 dr/dlambda at the unloaded state.
-    velocity = _euler_velocity(model, pack, params, dtype)
+    velocity = _euler_velocity(model, pack, params, dtype, opt.linear_solver)
     x = torch.as_tensor(lam, dtype=dtype)[:, None] * velocity
     ls_base, ls_dx = torch.zeros_like(x), torch.zeros_like(x)
     ls_alpha, ls_count = np.ones(N), np.zeros(N, dtype=np.int64)
@@ -225,9 +226,9 @@ def solve(
             da = torch.full((need.size, n), float("nan"), dtype=dtype)
             for j in range(need.size):
                 try:
-                    lu = spla.splu(evt.tangents[j].tocsc())
+                    lu = Factorization(evt.tangents[j], opt.linear_solver)
                     da[j] = torch.as_tensor(lu.solve(-evt.rhs[j].numpy()))
-                except RuntimeError:  # exactly singular tangent: the member is cut back below
+                except SingularMatrixError:  # the member is cut back below
                     pass
             timings["solve"] += time.perf_counter() - t0
             a_need, local_need = pack.split(x[need])
@@ -267,7 +268,7 @@ def solve(
                     last_res, history, timings)
 
 
-def _euler_velocity(model: Model, pack: _Packing, params, dtype, h: float = 1e-6) -> torch.Tensor:
+def _euler_velocity(model: Model, pack: _Packing, params, dtype, backend: str, h: float = 1e-6) -> torch.Tensor:
     """``dx/dlambda`` at the unloaded state for every member (central difference in lambda)."""
     N = next(iter(params.values())).shape[0]
     a0 = torch.zeros(N, model.n_red, dtype=dtype)
@@ -278,8 +279,8 @@ def _euler_velocity(model: Model, pack: _Packing, params, dtype, h: float = 1e-6
     v = torch.zeros_like(a0)
     for m in range(N):
         try:
-            v[m] = torch.as_tensor(spla.splu(ev.tangents[m].tocsc()).solve(-dr[m].numpy()))
-        except RuntimeError:  # singular initial tangent: start from zero, Newton will tell
+            v[m] = torch.as_tensor(Factorization(ev.tangents[m], backend).solve(-dr[m].numpy()))
+        except SingularMatrixError:  # singular initial tangent: start from zero, Newton will tell
             v[m] = 0.0
     if pack.size == model.n_red:
         return v

@@ -1,0 +1,23 @@
+"""Both sparse direct solver backends give the same Newton steps (when PARDISO is installed)."""
+import numpy as np
+import scipy.sparse as sp
+
+from torchfra.fem.linsolve import Factorization, SingularMatrixError, available_backends
+
+
+def test_backends_solve_a_nonsymmetric_system():
+    rng = np.random.default_rng(0)
+    A = sp.random(200, 200, density=0.05, random_state=1) + sp.eye(200) * 5
+    b = rng.standard_normal((200, 3))
+    for backend in available_backends():
+        x = Factorization(A, backend).solve(b)
+        assert np.abs(A @ x - b).max() < 1e-10
+
+
+def test_singular_matrix_is_reported():
+    A = sp.csr_matrix(np.array([[1.0, 2.0], [2.0, 4.0]]))
+    try:
+        x = Factorization(A, "superlu").solve(np.ones(2))
+    except SingularMatrixError:
+        return
+    assert not np.all(np.isfinite(x))

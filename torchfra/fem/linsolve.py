@@ -1,0 +1,63 @@
+"""Sparse direct solvers for the reduced Newton systems.
+
+Measured on a 14,688-dof Hex20 tangent (2.2M nonzeros), one core: SciPy SuperLU factorizes in
+~7 s (COLAMD, ~21M factor nonzeros; symmetric orderings do no better), MKL PARDISO (``pypardiso``,
+optional extra ``torchfra[pardiso]``) in ~2.5 s, and solves 100 right-hand sides at once in
+~2.5 s where SuperLU's multi-RHS path took 45 s. PARDISO costs ~0.6 s per factorization even for
+tiny systems, so ``"auto"`` takes it only when installed and the system has at least
+``PARDISO_MIN_SIZE`` unknowns.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+
+class SingularMatrixError(RuntimeError):
+    """The tangent is singular (e.g. an unconstrained rigid-body mode)."""
+
+
+def available_backends() -> list[str]:
+    out = ["superlu"]
+    try:
+        import pypardiso  # noqa: F401
+
+        out.append("pardiso")
+    except ImportError:
+        pass
+    return out
+
+
+PARDISO_MIN_SIZE = 5000
+
+
+def resolve_backend(name: str, size: int = 0) -> str:
+    if name == "auto":
+        return "pardiso" if size >= PARDISO_MIN_SIZE and "pardiso" in available_backends() else "superlu"
+    if name not in available_backends():
+        raise ValueError(f"linear solver {name!r} is not available here; available: {available_backends()}")
+    return name
+
+
+class Factorization:
+    """LU factors of one sparse matrix; ``solve(b)`` for b (n,) or (n, k)."""
+
+    def __init__(self, K: sp.spmatrix, backend: str = "auto"):
+        self.backend = resolve_backend(backend, K.shape[0])
+        if self.backend == "pardiso":
+            import pypardiso
+
+            self._K = sp.csr_matrix(K)
+            self._solver = pypardiso.PyPardisoSolver(mtype=11)  # real non-symmetric: safe for follower loads
+            self._solver.factorize(self._K)
+        else:
+            try:
+                self._lu = spla.splu(sp.csc_matrix(K))
+            except RuntimeError as exc:
+                raise SingularMatrixError(str(exc)) from exc
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        if self.backend == "pardiso":
+            return self._solver.solve(self._K, b)
+        return self._lu.solve(b)
