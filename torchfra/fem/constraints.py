@@ -14,12 +14,23 @@ Reduced residual ``r_a = J^T r_u`` and tangent ``K_a = J^T K_u J + sum_i r_i . d
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 import torch
 from torch.func import hessian, jacfwd, vmap
+
+
+def _csr(M: sp.csr_matrix, dtype) -> torch.Tensor:
+    """A SciPy CSR matrix as a torch sparse CSR tensor (torch's beta warning silenced)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        return torch.sparse_csr_tensor(
+            torch.as_tensor(M.indptr), torch.as_tensor(M.indices), torch.as_tensor(M.data, dtype=dtype),
+            size=M.shape, check_invariants=False,
+        )
 
 
 def _skew(t: torch.Tensor) -> torch.Tensor:
@@ -109,10 +120,7 @@ class DofMap:
         self.T = sp.csr_matrix(
             (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n_full, n_red)
         )
-        self._T_torch = torch.sparse_csr_tensor(
-            torch.as_tensor(self.T.indptr), torch.as_tensor(self.T.indices), torch.as_tensor(self.T.data, dtype=dtype),
-            size=self.T.shape,
-        )
+        self._T_torch = _csr(self.T, dtype)
         self._TT_torch = None
         self.u_presc = torch.as_tensor(u_presc, dtype=dtype)
         self.fixed = np.flatnonzero(role == 1)
@@ -134,11 +142,7 @@ class DofMap:
     def reduce(self, r_full: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         """J^T r: (N, n_full) -> (N, n_red)."""
         if self._TT_torch is None:
-            TT = self.T.T.tocsr()
-            self._TT_torch = torch.sparse_csr_tensor(
-                torch.as_tensor(TT.indptr), torch.as_tensor(TT.indices), torch.as_tensor(TT.data, dtype=self.dtype),
-                size=TT.shape,
-            )
+            self._TT_torch = _csr(self.T.T.tocsr(), self.dtype)
         r = (self._TT_torch @ r_full.T).T.clone()
         for b, dRdt in zip(self.bodies, self._rotation_jacobians(a)):
             r_nodes = r_full[:, torch.as_tensor(3 * b.nodes[:, None] + np.arange(3))]  # (N, k, 3)

@@ -171,6 +171,7 @@ class Model:
     # -- evaluation --------------------------------------------------------------------------------
     def displacement(self, a: torch.Tensor, load_factor: torch.Tensor) -> torch.Tensor:
         """a: (N, n_red) -> nodal displacements (N, n_nodes, 3)."""
+        a, load_factor = torch.as_tensor(a, dtype=self.dtype), torch.as_tensor(load_factor, dtype=self.dtype)
         return self.finalize().dofmap.expand(a, load_factor).reshape(a.shape[0], -1, 3)
 
     def initial_local(self, N: int) -> list[torch.Tensor | None]:
@@ -184,6 +185,8 @@ class Model:
         their stationary values for ``a``.
         """
         self.finalize()
+        a, load_factor = torch.as_tensor(a, dtype=self.dtype), torch.as_tensor(load_factor, dtype=self.dtype)
+        params = {k: torch.as_tensor(v, dtype=self.dtype) for k, v in params.items()}
         N = a.shape[0]
         local = local or [None] * len(self.terms)
         if tangent:

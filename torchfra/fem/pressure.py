@@ -7,8 +7,9 @@ so ``n da = -a ds dt`` is the body's outward area element (Nanson: ``J F^-T N dA
   residual ``r_a = -P int N_a (x_s x x_t) ds dt`` and its exact load stiffness (torch.func).
 - ``CavityPressure``: for a closed face set bounding a cavity, the conservative potential
   ``-P (V(x) - V(X))`` with ``V = 1/3 sum_faces int x . (x_s x x_t) ds dt`` (divergence theorem).
-  Its gradient equals the follower residual on a closed surface; 3x3 Gauss integrates both
-  integrands (degree <= 5 per direction) exactly, so they agree to round-off.
+  Its gradient equals the follower residual on a closed surface; 3x3 Gauss (the default
+  ``quadrature``) integrates both integrands (degree <= 5 per direction) exactly, so they agree to
+  round-off. ``quadrature=2`` reproduces CalculiX's C3D20R face rule for cross-checks.
 """
 from __future__ import annotations
 
@@ -24,7 +25,7 @@ from .terms import Term, TermOutput, node_dofs
 class _FaceLoad(Term):
     kind = "load"
 
-    def __init__(self, mesh: Mesh, face_set: str, pressure: str = "P", dtype=torch.float64):
+    def __init__(self, mesh: Mesh, face_set: str, pressure: str = "P", quadrature: int = 3, dtype=torch.float64):
         self.face_set = face_set
         self.param_names = (pressure,)
         self.pressure = pressure
@@ -34,7 +35,7 @@ class _FaceLoad(Term):
         self.face_conn = torch.as_tensor(nodes)
         self.dofs = node_dofs(nodes)
         self.X = as_tensor(mesh.nodes[nodes], dtype)  # (B, 8, 3)
-        pts, wts = gauss_quad(3)
+        pts, wts = gauss_quad(quadrature)
         N, dN = quad8_shape(pts)
         self.N, self.dN, self.w = as_tensor(N, dtype), as_tensor(dN, dtype), as_tensor(wts, dtype)
 
@@ -76,9 +77,9 @@ class CavityPressure(_FaceLoad):
     """Pressure ``P`` (MPa) in a closed cavity bounded by a face set, as the conservative
     potential ``-lambda P (V - V0)``; ``cavity_volume`` reports V (mm^3)."""
 
-    def __init__(self, mesh: Mesh, face_set: str, pressure: str = "P", dtype=torch.float64):
+    def __init__(self, mesh: Mesh, face_set: str, pressure: str = "P", quadrature: int = 3, dtype=torch.float64):
         check_closed(mesh, face_set)
-        super().__init__(mesh, face_set, pressure, dtype)
+        super().__init__(mesh, face_set, pressure, quadrature, dtype)
 
     def _face_volume(self, x: torch.Tensor) -> torch.Tensor:
         return torch.einsum("q,qi,qi->", self.w, torch.einsum("qa,ai->qi", self.N, x), self.area_vectors(x)) / 3.0
