@@ -78,7 +78,6 @@ def test_quarter_tube_converges_to_rivlin():
     assert (finest.a_fe_members[1] - finest.a_fe) / A_EXACT == pytest.approx(2.626e-5, rel=0.02)
 
 
-@pytest.mark.slow
 def test_quarter_tube_asymptotic_order():
     """Finer meshes (~5 s): measured errors 1.141e-4, 7.881e-6, 5.009e-7; orders 3.86, 3.98."""
     results = refinement_study(A, B, C10, P, [(2, 4, 1), (4, 8, 1), (8, 16, 1)])
