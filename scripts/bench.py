@@ -8,12 +8,14 @@ Prints one JSON document (``definitions`` in it says what every timing means) an
 ``--out``; progress goes to stderr. Measurements that would take long have time budgets: past a
 budget a member-chunked measurement stops and is extrapolated linearly in members, and a Newton
 solve that would not fit is replaced by a measured batched iteration or an estimate. The JSON
-says which (``extrapolated``, ``mode``). Timings are only meaningful on a quiet machine: the
-load averages at start and end are recorded.
+says which (``extrapolated``, ``mode``, ``skipped``). Every available sparse solver backend of
+``fem.linsolve`` is measured; MKL (PARDISO) runs with ``--threads`` threads, as torch does.
+Timings are only meaningful on a quiet machine: the load averages at start and end are recorded.
 """
 from __future__ import annotations
 
 import argparse
+import ctypes
 import dataclasses
 import datetime
 import gc
@@ -28,11 +30,11 @@ import warnings
 
 import numpy as np
 import scipy
-import scipy.sparse.linalg as spla
 import torch
 
 from torchfra import fem
 from torchfra.fem.assembly import SparsePattern, scatter_vector
+from torchfra.fem.linsolve import Factorization, available_backends, resolve_backend
 from torchfra.geometry.structured import box_mesh
 
 warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
@@ -60,42 +62,61 @@ DEFINITIONS = {
     "build.finalize_s": "Model.finalize(): constraint map (DofMap) + sparse pattern + orphan check.",
     "build.pattern_s": "SparsePattern(3 n_nodes, dofs of every term) alone, built once per mesh.",
     "kernel": "Hex20Solid(hybrid).evaluate(u, params, load_factor, tangent) called directly on a random "
-    "displacement (amplitude KERNEL_AMPLITUDE x smallest element edge). residual_s: tangent=False (element "
-    "forces + condensed pressure), unchunked for the closed form (as Model.evaluate), member-chunked for "
-    "torch.func because its derived path computes the Gauss-point Hessian even for a residual. "
-    "residual_tangent_s: tangent=True, member-chunked. member_elements_per_s = members x elements / s.",
+    "displacement (amplitude KERNEL_AMPLITUDE x smallest element edge), local=None (element pressures projected "
+    "from u). residual_s: tangent=False (element forces + condensed pressure), unchunked for the closed form (as "
+    "Model.evaluate), member-chunked for torch.func because its derived path computes the Gauss-point Hessian "
+    "even for a residual. residual_tangent_s: tangent=True, member-chunked. member_elements_per_s = members x "
+    "elements / s.",
     "kernel.material": "neohookean_closed_form: NeoHookean() fast path; neohookean_torch_func: "
     "NeoHookean(fast=False), stress and tangent by vmap(jacfwd(grad(psi))).",
-    "assembly": "At a random small state (reduced unknowns ~ STATE_AMPLITUDE, load factor 1) of "
-    "members_timed = min(members, chunk_size) members; all values are seconds per member. "
+    "assembly": "At a random small state (reduced unknowns ~ STATE_AMPLITUDE, load factor 1, element pressures "
+    "model.initial_local = 0) of members_timed = min(members, chunk_size) members; all values are seconds per "
+    "member. "
     "assemble: SparsePattern.assemble of all terms' element tangents into CSR data (one index_add_ per term). "
     "reduce: Model._reduced_tangents minus assemble: per member CSR build, J^T K J with the constraint "
     "Jacobian and the rigid-body geometric stiffness. model_residual / model_tangent: Model.evaluate(a, ..., "
-    "tangent=False / True) end to end (displacement map, every term, scatter, reduction).",
-    "factorization": "scipy.sparse.linalg.splu (SuperLU, default COLAMD ordering, as fem.newton) of member 0's "
-    "reduced tangent from the assembly state (1 member), after tocsc (tocsc_s); solve_s: one lu.solve; "
-    "factor_nnz = nnz(L) + nnz(U).",
+    "tangent=False / True, local=pressures) end to end (displacement map, every term, scatter, reduction), as a "
+    "Newton iteration calls it.",
+    "factorization": "fem.linsolve.Factorization(K, backend) of member 0's reduced tangent K from the assembly "
+    "state (1 member), for every backend in available_backends(); right-hand side b = -rhs (the condensed "
+    "residual Newton solves with). auto_backend: what backend 'auto' (fem.newton's default) resolves to for K. "
+    "Per backend: factorize_s: Factorization(K, backend) incl. its sparse format conversion (and for pardiso the "
+    "construction of the pypardiso solver, which searches for the MKL library: constructor_s, timed alone); "
+    "solve_s: one solve(b); relative_residual: |K x - b| / |b|. superlu: scipy splu, COLAMD, factor_nnz = nnz(L) "
+    "+ nnz(U); skipped above superlu_max_unknowns (a 51k-unknown SuperLU factorization did not finish in 20 min). "
+    "pardiso: MKL PARDISO (pypardiso, mtype 11) with mkl_threads threads; multi_rhs_solve_s: one solve of "
+    "multi_rhs right-hand sides at once (B: n x multi_rhs); factor_nnz = iparm(18); factor_memory_mb = iparm(16) "
+    "+ iparm(17), the MKL memory a Factorization keeps (Factorization never frees it; the benchmark frees its own "
+    "after each run, fem.solve does not); phases: analysis_s (PARDISO phase 11: reordering + symbolic) and "
+    "numeric_s (phase 22: numerical factorization) timed once each on a separate solver.",
     "newton.problem": "clamped base (zmin), rigid top (zmax), follower pressure P on the side face ymin (the "
     "block bends towards +y), NeoHookean hybrid, D1 near-incompressible; member 0: C10 = 1.1 kappa_t, other "
     "members C10 ~ logN(1.1 kappa_t, (0.2 kappa_t)^2); P = P_OVER_C10 x 1.1 kappa_t for all; load factor 0 -> 1 "
     "with NewtonOptions() defaults.",
-    "newton.full_solve": "fem.solve(model, params, (1.0,)) wall time once; timings = Solution.timings (residual: "
-    "Model.evaluate without tangent; tangent: Model.evaluate with tangent, kernels + assembly + reduction; "
-    "solve: per-member tocsc + splu + solve); other_s = wall - sum(timings): Euler predictor (one tangent "
-    "and one factorization per member, two residuals) and bookkeeping. iterations/increments/cutbacks: "
-    "per member (min, max, mean for a batch).",
+    "newton.full_solve": "fem.solve(model, params, (1.0,), NewtonOptions(linear_solver=linear_solver)) wall time "
+    "once; timings = Solution.timings (residual: Model.evaluate without tangent; tangent: Model.evaluate with "
+    "tangent, kernels + assembly + reduction; solve: per-member Factorization + solve); other_s = wall - "
+    "sum(timings): Euler predictor (one tangent and one factorization per member, two residuals) and "
+    "bookkeeping. iterations/increments/cutbacks: per member (min, max, mean for a batch).",
     "newton_pilot": "full_solve of the same problem on the tiny PILOT_DIVISIONS mesh with pilot_members members, "
     "run first: its iteration counts (member 0, and the slowest member) are the assumed_iterations of the "
     "estimates below until a mesh's own 1-member solve has run (Newton iteration counts depend little on the mesh).",
+    "newton.single": "the 1-member record is for linear_solver = the backend 'auto' picks (fem.newton's default); "
+    "other_backends holds the same record for every other available backend. mode: full_solve, estimated, or "
+    "skipped ('skipped' says why: the backend's factorization was skipped, or PARDISO's unfreed factor memory, "
+    "factor_memory_mb x (assumed_iterations + 1) factorizations, would exceed half the available memory).",
     "newton.estimated": "a full solve does not fit newton_budget_s: estimated_wall_s = (assumed_iterations + 1) x "
-    "per_iteration_s, with per_iteration_s = model_residual + model_tangent + splu + solve measured above for one "
-    "member (the + 1 is the Euler predictor's factorization).",
+    "per_iteration_s, with per_iteration_s = model_residual + model_tangent + factorize + solve of that backend "
+    "measured above for one member (the + 1 is the Euler predictor's factorization).",
     "newton.one_iteration": "cost of one batched Newton iteration as fem.solve runs it, measured from the "
-    "undeformed state a = 0 at load factor initial_increment: residual_s = Model.evaluate(all members); "
-    "tangent_s = Model.evaluate(tangent=True) in member chunks (member-chunked record); solve_s = per member "
-    "tocsc + splu + solve, timed on at most solve_members members within chunk_budget_s and extrapolated to all "
-    "members, or (source 'factorization') members x factorization splu + solve when one factorization exceeds "
-    "the budget. check: relative residual |r| / force_scale of the solved members before and after the step.",
+    "undeformed state (a = 0, element pressures model.initial_local) at load factor initial_increment: "
+    "residual_s = Model.evaluate(all members, local=...); tangent_s = Model.evaluate(tangent=True, local=...) in "
+    "member chunks (member-chunked record); solve_s = per member Factorization(K, linear_solver) + solve(-rhs), "
+    "linear_solver = what 'auto' picks, timed on at most solve_members members within chunk_budget_s and "
+    "extrapolated to all members, or (source 'factorization') members x (factorize + solve) of the factorization "
+    "section when one factorization exceeds the budget. check: relative residual max(|r|, |rhs|) / force_scale "
+    "(fem.newton's measure) of the solved members before and after the step (pressures updated by "
+    "Model.local_update).",
     "newton.estimated_full_solve_s": "(assumed_iterations + 1) x per_iteration_s of the batch, assumed_iterations = "
     "the pilot's slowest member (or this mesh's 1-member count if larger): the batch iterates until its slowest "
     "member is done. A full batched solve runs only if this fits newton_budget_s.",
@@ -113,6 +134,8 @@ class Config:
     newton_budget_s: float = 300.0
     memory_budget_mb: float = 1024.0  # Model's default
     solve_members: int = 3  # most members factorized in a measured batched iteration
+    superlu_max_unknowns: int = 20_000  # SuperLU is skipped above this (51k unknowns: > 20 min)
+    multi_rhs: int = 100  # right-hand sides of the PARDISO multi-RHS solve
     pilot_members: int = 8
     seed: int = 0
 
@@ -137,13 +160,16 @@ def clock(fn):
     return time.perf_counter() - t0, out
 
 
-def measure(fn, cfg: Config):
-    """Timing record of ``fn()`` and its last output (see DEFINITIONS['timing record'])."""
+def measure(fn, cfg: Config, cleanup=None):
+    """Timing record of ``fn()`` and its last output (see DEFINITIONS['timing record']); ``cleanup(out)``
+    runs untimed on every output but the last."""
     first, out = clock(fn)
     if first * cfg.repeats > cfg.repeat_budget_s:
         return {"s": first, "runs_s": [first], "warmed_up": False}, out
     runs = []
     for _ in range(cfg.repeats):
+        if cleanup is not None:
+            cleanup(out)
         del out
         t, out = clock(fn)
         runs.append(t)
@@ -164,6 +190,64 @@ def measure_members(fn, n: int, chunk: int, cfg: Config) -> dict:
             break
     return {"s": sum(runs) * n / done, "runs_s": runs, "warmed_up": False, "chunk_size": chunk,
             "members_timed": done, "extrapolated": done < n}
+
+
+# -- sparse solvers ---------------------------------------------------------------------------------------
+def mkl_library():
+    """The MKL runtime that pypardiso calls, or None without the pardiso extra."""
+    if "pardiso" not in available_backends():
+        return None
+    import pypardiso
+
+    return pypardiso.PyPardisoSolver().libmkl
+
+
+def set_mkl_threads(n: int) -> int | None:
+    """Threads of PARDISO (MKL's own setting; torch.set_num_threads does not reach it)."""
+    lib = mkl_library()
+    if lib is None:
+        return None
+    lib.MKL_Set_Num_Threads(ctypes.c_int(n))
+    return int(lib.mkl_get_max_threads())
+
+
+def release(factorization: Factorization) -> None:
+    """Free a PARDISO factorization's MKL memory, which Factorization leaves allocated (pypardiso frees
+    it only on request), so that the benchmark's own repeated factorizations do not accumulate it."""
+    if factorization.backend == "pardiso":
+        factorization._solver.free_memory(everything=True)
+
+
+def pardiso_phases(K) -> dict:
+    """PARDISO reordering + symbolic analysis (phase 11) and numerical factorization (phase 22), timed once."""
+    import pypardiso
+    import scipy.sparse as sp
+
+    solver = pypardiso.PyPardisoSolver(mtype=11)
+    A = sp.csr_matrix(K)
+    solver._check_A(A)  # the input preparation pypardiso's factorize does
+    b = np.zeros((A.shape[0], 1))
+    out = {}
+    for name, phase in (("analysis_s", 11), ("numeric_s", 22)):
+        solver.set_phase(phase)
+        out[name] = clock(lambda: solver._call_pardiso(A, b))[0]
+    solver.free_memory(everything=True)
+    return out
+
+
+def available_memory_mb() -> float:
+    with open("/proc/meminfo") as f:
+        return next(int(line.split()[1]) / 1024 for line in f if line.startswith("MemAvailable"))
+
+
+def pardiso_memory_guard(row: dict, factorizations: int) -> str | None:
+    """Why a run of ``factorizations`` PARDISO factorizations through fem.linsolve must not run (their
+    factor memory is never freed), or None."""
+    need, have = row["factor_memory_mb"] * factorizations, available_memory_mb()
+    if need <= 0.5 * have:
+        return None
+    return (f"Factorization does not free PARDISO's factor memory: {factorizations} factorizations x "
+            f"{row['factor_memory_mb']:.0f} MB = {need:.0f} MB > half the available {have:.0f} MB")
 
 
 # -- the benchmark problem ----------------------------------------------------------------------------
@@ -240,7 +324,7 @@ def bench_kernels(model, solid, info, cfg: Config, derived: bool) -> list[dict]:
 
 
 def bench_assembly(model, info, cfg: Config):
-    """Per-member assembly/reduction records, and member 0's reduced tangent and residual (1 member)."""
+    """Per-member assembly/reduction records, and member 0's reduced tangent and condensed residual (1 member)."""
     rows, first = [], None
     for n in cfg.members:
         m = min(n, info["chunk_size"])
@@ -256,10 +340,11 @@ def bench_assembly(model, info, cfg: Config):
         assemble, _ = measure(lambda: model.pattern.assemble(blocks), cfg)
         with_reduce, _ = measure(lambda: model._reduced_tangents(a, r_full, blocks), cfg)
         del outs, blocks, r_full
-        residual, _ = measure(lambda: model.evaluate(a, params, lam), cfg)
-        tangent, ev = measure(lambda: model.evaluate(a, params, lam, tangent=True), cfg)
+        local = model.initial_local(m)
+        residual, _ = measure(lambda: model.evaluate(a, params, lam, local=local), cfg)
+        tangent, ev = measure(lambda: model.evaluate(a, params, lam, tangent=True, local=local), cfg)
         if first is None:
-            first = ev.tangents[0], ev.residual[0].numpy()
+            first = ev.tangents[0], ev.rhs[0].numpy()
         del ev
         rows.append({
             "members": n, "members_timed": m,
@@ -273,15 +358,41 @@ def bench_assembly(model, info, cfg: Config):
     return rows, first
 
 
-def bench_factorization(K, r, cfg: Config) -> dict:
-    log(f"  factorization, {K.shape[0]} unknowns, nnz {K.nnz}")
-    to_csc, Kc = measure(K.tocsc, cfg)
-    splu, lu = measure(lambda: spla.splu(Kc), cfg)
-    solve, _ = measure(lambda: lu.solve(-r), cfg)
-    log(f"    splu {splu['s']:.2f} s, solve {solve['s']:.3f} s")
-    return {"reduced_dofs": int(K.shape[0]), "nnz": int(K.nnz), "factor_nnz": int(lu.L.nnz + lu.U.nnz),
-            "permc_spec": "COLAMD (scipy default, as fem.newton)", "tocsc_s": to_csc, "splu_s": splu,
-            "solve_s": solve}
+def bench_factorization(K, rhs: np.ndarray, cfg: Config) -> dict:
+    n = K.shape[0]
+    b = -rhs
+    record = {"reduced_dofs": int(n), "nnz": int(K.nnz), "auto_backend": resolve_backend("auto", n), "backends": {}}
+    for backend in available_backends():
+        log(f"  factorization, {backend}, {n} unknowns, nnz {K.nnz}")
+        if backend == "superlu" and n > cfg.superlu_max_unknowns:
+            reason = f"{n} unknowns > superlu_max_unknowns = {cfg.superlu_max_unknowns}"
+            log(f"    skipped: {reason}")
+            record["backends"][backend] = {"skipped": reason}
+            continue
+        factorize, fac = measure(lambda: Factorization(K, backend), cfg, cleanup=release)
+        solve, x = measure(lambda: fac.solve(b), cfg)
+        row = {"factorize_s": factorize, "solve_s": solve,
+               "relative_residual": float(np.linalg.norm(K @ x - b) / np.linalg.norm(b))}
+        if backend == "superlu":
+            row.update(permc_spec="COLAMD (scipy default, as fem.linsolve)",
+                       factor_nnz=int(fac._lu.L.nnz + fac._lu.U.nnz))
+        else:
+            import pypardiso
+
+            B = np.random.default_rng(cfg.seed).standard_normal((n, cfg.multi_rhs))
+            multi, _ = measure(lambda: fac.solve(B), cfg)
+            iparm = fac._solver.get_iparm
+            row.update(multi_rhs=cfg.multi_rhs, multi_rhs_solve_s=multi, factor_nnz=int(iparm(18)),
+                       factor_memory_mb=(int(iparm(16)) + int(iparm(17))) / 1024,
+                       constructor_s=measure(pypardiso.PyPardisoSolver, cfg)[0], phases=pardiso_phases(K))
+        release(fac)
+        del fac
+        record["backends"][backend] = row
+        extra = (f", {cfg.multi_rhs} right-hand sides {row['multi_rhs_solve_s']['s']:.2f} s"
+                 if "multi_rhs" in row else "")
+        log(f"    factorize {factorize['s']:.2f} s, solve {solve['s']:.3f} s{extra}, "
+            f"|Kx - b| / |b| = {row['relative_residual']:.1e}")
+    return record
 
 
 def solution_record(sol, wall: float, model) -> dict:
@@ -298,19 +409,43 @@ def solution_record(sol, wall: float, model) -> dict:
     }
 
 
-def bench_newton_single(model, cfg: Config, assembly_row: dict, factorization: dict, assumed: int) -> dict:
+def newton_single(model, cfg: Config, backend: str, assembly_row: dict, factorization: dict, assumed: int) -> dict:
+    row = factorization["backends"][backend]
+    if "skipped" in row:
+        return {"mode": "skipped", "linear_solver": backend, "skipped": f"factorization skipped: {row['skipped']}"}
     per_iteration = (assembly_row["model_residual_per_member_s"] + assembly_row["model_tangent_per_member_s"]
-                     + factorization["splu_s"]["s"] + factorization["solve_s"]["s"])
-    record = {"members": 1, "per_iteration_s": per_iteration, "assumed_iterations": assumed,
+                     + row["factorize_s"]["s"] + row["solve_s"]["s"])
+    record = {"members": 1, "linear_solver": backend, "per_iteration_s": per_iteration, "assumed_iterations": assumed,
               "estimated_wall_s": (assumed + 1) * per_iteration}
+    reason = pardiso_memory_guard(row, assumed + 1) if backend == "pardiso" else None
+    if reason:
+        log(f"  newton, 1 member, {backend}: skipped: {reason}")
+        return {"mode": "skipped", **record, "skipped": reason}
     if record["estimated_wall_s"] > cfg.newton_budget_s:
-        log(f"  newton, 1 member: estimated {record['estimated_wall_s']:.0f} s > budget, not run")
+        log(f"  newton, 1 member, {backend}: estimated {record['estimated_wall_s']:.0f} s > budget, not run")
         return {"mode": "estimated", **record}
-    log(f"  newton, 1 member: full solve (estimated {record['estimated_wall_s']:.0f} s)")
-    wall, sol = clock(lambda: fem.solve(model, member_params(1, cfg.seed), (1.0,), fem.NewtonOptions()))
+    log(f"  newton, 1 member, {backend}: full solve (estimated {record['estimated_wall_s']:.0f} s)")
+    options = fem.NewtonOptions(linear_solver=backend)
+    wall, sol = clock(lambda: fem.solve(model, member_params(1, cfg.seed), (1.0,), options))
     result = solution_record(sol, wall, model)
     log(f"    {result['iterations']['max']} iterations, {result['increments']['max']} increments, {wall:.1f} s")
     return {"mode": "full_solve", **record, **result, "residual_history_member0": sol.residual_history[0]}
+
+
+def bench_newton_single(model, cfg: Config, assembly_row: dict, factorization: dict, assumed: int) -> dict:
+    """The 1-member solve with the backend 'auto' picks; other_backends: the same with every other backend."""
+    auto = factorization["auto_backend"]
+    record = newton_single(model, cfg, auto, assembly_row, factorization, assumed)
+    if record["mode"] == "full_solve":
+        assumed = record["iterations"]["max"]
+    record["other_backends"] = {b: newton_single(model, cfg, b, assembly_row, factorization, assumed)
+                                for b in available_backends() if b != auto}
+    return record
+
+
+def relative_residual(ev) -> torch.Tensor:
+    """fem.newton's convergence measure: max(|r|, |condensed r|) / force_scale, (N,)."""
+    return torch.maximum(ev.residual.norm(dim=1), ev.rhs.norm(dim=1)) / ev.force_scale
 
 
 def bench_newton_batch(model, n: int, cfg: Config, factorization: dict, assumed: int) -> dict:
@@ -318,19 +453,29 @@ def bench_newton_batch(model, n: int, cfg: Config, factorization: dict, assumed:
     params = member_params(n, cfg.seed)
     lam = torch.full((n,), fem.NewtonOptions().initial_increment, dtype=DTYPE)
     a = torch.zeros(n, model.n_red, dtype=DTYPE)
-    residual, ev = measure(lambda: model.evaluate(a, params, lam), cfg)
+    local = model.initial_local(n)
+    residual, ev = measure(lambda: model.evaluate(a, params, lam, local=local), cfg)
     chunk = model._chunk_size()
-    one_factorization = factorization["splu_s"]["s"] + factorization["solve_s"]["s"]
-    may_solve = one_factorization <= cfg.chunk_budget_s
+    backend = factorization["auto_backend"]
+    row = factorization["backends"][backend]
+    one_factorization = None if "skipped" in row else row["factorize_s"]["s"] + row["solve_s"]["s"]
+    may_solve = one_factorization is not None and one_factorization <= cfg.chunk_budget_s
     tangent_runs, solve_runs, solved, steps = [], [], [], []
+
+    def factorize_and_solve(evt, j):
+        fac = Factorization(evt.tangents[j], backend)
+        return fac, fac.solve(-evt.rhs[j].numpy())
+
     for lo in range(0, n, chunk):
         hi = min(n, lo + chunk)
-        t, evt = clock(lambda: model.evaluate(a[lo:hi], members(params, slice(lo, hi)), lam[lo:hi], tangent=True))
+        t, evt = clock(lambda: model.evaluate(a[lo:hi], members(params, slice(lo, hi)), lam[lo:hi], tangent=True,
+                                              local=[None if l is None else l[lo:hi] for l in local]))
         tangent_runs.append(t)
         for j in range(hi - lo):
             if not may_solve or len(solved) == cfg.solve_members or sum(solve_runs) > cfg.chunk_budget_s:
                 break
-            t, da = clock(lambda: spla.splu(evt.tangents[j].tocsc()).solve(-evt.residual[j].numpy()))
+            t, (fac, da) = clock(lambda: factorize_and_solve(evt, j))
+            release(fac)
             solve_runs.append(t)
             solved.append(lo + j)
             steps.append(torch.as_tensor(da))
@@ -343,28 +488,36 @@ def bench_newton_batch(model, n: int, cfg: Config, factorization: dict, assumed:
     if solved:
         solve = {"s": sum(solve_runs) * n / len(solved), "runs_s": solve_runs, "source": "measured",
                  "members_timed": len(solved), "extrapolated": len(solved) < n}
-    else:
+    elif one_factorization is not None:
         solve = {"s": one_factorization * n, "source": "factorization", "members_timed": 0, "extrapolated": True}
+    else:
+        solve = {"s": None, "source": "none", "members_timed": 0, "skipped": row["skipped"]}
+    record = {"members": n, "mode": "one_iteration", "load_factor": float(lam[0]), "linear_solver": backend,
+              "residual_s": residual, "tangent_s": tangent, "solve_s": solve}
+    if solve["s"] is None:
+        log(f"    residual {residual['s']:.2f} s, tangent {tangent['s']:.1f} s, solve skipped: {row['skipped']}")
+        return record
     per_iteration = residual["s"] + tangent["s"] + solve["s"]
-    record = {
-        "members": n, "mode": "one_iteration", "load_factor": float(lam[0]), "residual_s": residual,
-        "tangent_s": tangent, "solve_s": solve, "per_iteration_s": per_iteration,
-        "split": {k: v["s"] / per_iteration
-                  for k, v in (("residual", residual), ("tangent", tangent), ("solve", solve))},
-    }
+    record.update(per_iteration_s=per_iteration, split={
+        k: v["s"] / per_iteration for k, v in (("residual", residual), ("tangent", tangent), ("solve", solve))})
     if solved:
         idx = torch.as_tensor(solved)
-        after = model.evaluate(a[idx] + torch.stack(steps), members(params, idx), lam[idx])
+        da, prm, loc = torch.stack(steps), members(params, idx), [None if l is None else l[idx] for l in local]
+        after = model.evaluate(a[idx] + da, prm, lam[idx], local=model.local_update(a[idx], da, prm, lam[idx], loc))
         record["check"] = {
             "members": solved,
-            "relative_residual_before": (ev.residual[idx].norm(dim=1) / ev.force_scale[idx]).tolist(),
-            "relative_residual_after": (after.residual.norm(dim=1) / after.force_scale).tolist(),
+            "relative_residual_before": relative_residual(ev)[idx].tolist(),
+            "relative_residual_after": relative_residual(after).tolist(),
         }
     log(f"    per iteration {per_iteration:.1f} s (residual {residual['s']:.2f}, tangent {tangent['s']:.1f}, "
-        f"solve {solve['s']:.1f} [{solve['source']}])")
+        f"solve {solve['s']:.1f} [{solve['source']}, {backend}])")
     estimate = (assumed + 1) * per_iteration
     record.update(assumed_iterations=assumed, estimated_full_solve_s=estimate)
-    if estimate <= cfg.newton_budget_s:
+    reason = pardiso_memory_guard(row, n * (assumed + 1)) if backend == "pardiso" else None
+    if reason:
+        log(f"  newton, {n} members: full solve skipped: {reason}")
+        record["full_solve_skipped"] = reason
+    elif estimate <= cfg.newton_budget_s:
         log(f"  newton, {n} members: full solve (estimated {estimate:.0f} s)")
         wall, sol = clock(lambda: fem.solve(model, params, (1.0,), fem.NewtonOptions()))
         record["full_solve"] = solution_record(sol, wall, model)
@@ -380,7 +533,8 @@ def bench_newton_pilot(cfg: Config) -> dict:
     wall, sol = clock(lambda: fem.solve(model, member_params(cfg.pilot_members, cfg.seed), (1.0,), fem.NewtonOptions()))
     log(f"    iterations per member {sol.iterations.tolist()}, {wall:.1f} s")
     return {"divisions": list(PILOT_DIVISIONS), "elements": info["elements"], "reduced_dofs": info["reduced_dofs"],
-            "members": cfg.pilot_members, **solution_record(sol, wall, model),
+            "members": cfg.pilot_members, "linear_solver": resolve_backend("auto", info["reduced_dofs"]),
+            **solution_record(sol, wall, model),
             "iterations_per_member": sol.iterations.tolist(), "increments_per_member": sol.increments.tolist(),
             "residual_history_member0": sol.residual_history[0]}
 
@@ -394,14 +548,16 @@ def cpu_model() -> str:
         return platform.processor()
 
 
-def environment() -> dict:
+def environment(mkl_threads: int | None) -> dict:
     return {
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "torch": torch.__version__, "numpy": np.__version__, "scipy": scipy.__version__,
         "python": platform.python_version(), "torch_threads": torch.get_num_threads(),
-        "torch_interop_threads": torch.get_num_interop_threads(),
+        "torch_interop_threads": torch.get_num_interop_threads(), "mkl_threads": mkl_threads,
+        "linear_solver_backends": available_backends(),
         "platform": platform.platform(), "machine": platform.machine(), "cpu_model": cpu_model(),
         "cpu_count": os.cpu_count(), "load_average_start": list(os.getloadavg()),
+        "memory_available_mb_start": available_memory_mb(),
     }
 
 
@@ -423,8 +579,9 @@ def fem_suite(cfg: Config) -> dict:
         info["factorization"] = bench_factorization(K, r, cfg)
         del K
         single = bench_newton_single(model, cfg, info["assembly"][0], info["factorization"], single_iterations)
-        if single["mode"] == "full_solve":
-            single_iterations = single["iterations"]["max"]
+        solved = [s for s in (single, *single["other_backends"].values()) if s["mode"] == "full_solve"]
+        if solved:
+            single_iterations = solved[0]["iterations"]["max"]
             batch_iterations = max(batch_iterations, single_iterations)
         info["newton"] = [single] + [bench_newton_batch(model, n, cfg, info["factorization"], batch_iterations)
                                      for n in cfg.members if n > 1]
@@ -451,12 +608,13 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--suite", choices=sorted(SUITES), required=True)
     parser.add_argument("--out", help="also write the JSON to this file")
-    parser.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (default 1)")
+    parser.add_argument("--threads", type=int, default=1, help="torch and MKL (PARDISO) threads (default 1)")
     parser.add_argument("--quick", action="store_true", help="tiny meshes and ensembles: a smoke test, < 1 min")
     parser.add_argument("--meshes", help="divisions to run instead of the suite's, e.g. 8x8x16,16x16x16")
     parser.add_argument("--members", help="member counts instead of the suite's, e.g. 1,100 (1 must come first)")
     parser.add_argument("--newton-budget-s", type=float, help="run a full Newton solve only if estimated below this")
     parser.add_argument("--chunk-budget-s", type=float, help="time budget of one member-chunked measurement")
+    parser.add_argument("--superlu-max-unknowns", type=int, help="skip SuperLU on larger systems")
     args = parser.parse_args(argv)
 
     torch.set_num_threads(args.threads)
@@ -471,12 +629,16 @@ def main(argv=None) -> dict:
         cfg.newton_budget_s = args.newton_budget_s
     if args.chunk_budget_s is not None:
         cfg.chunk_budget_s = args.chunk_budget_s
+    if args.superlu_max_unknowns is not None:
+        cfg.superlu_max_unknowns = args.superlu_max_unknowns
 
-    env = environment()
-    log(f"suite {args.suite}, {'quick' if args.quick else 'full'}, {torch.get_num_threads()} threads")
+    env = environment(set_mkl_threads(args.threads))
+    log(f"suite {args.suite}, {'quick' if args.quick else 'full'}, {torch.get_num_threads()} torch threads, "
+        f"{env['mkl_threads']} MKL threads, load average {env['load_average_start']}")
     result = {"suite": args.suite, "quick": args.quick, "environment": env, **SUITES[args.suite](cfg),
               "definitions": DEFINITIONS}
     env["load_average_end"] = list(os.getloadavg())
+    env["memory_available_mb_end"] = available_memory_mb()
     result["total_wall_s"] = time.perf_counter() - _START
     text = json.dumps(rounded(result), indent=1)
     if args.out:

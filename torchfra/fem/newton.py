@@ -228,6 +228,7 @@ def solve(
                 try:
                     lu = Factorization(evt.tangents[j], opt.linear_solver)
                     da[j] = torch.as_tensor(lu.solve(-evt.rhs[j].numpy()))
+                    lu.release()
                 except SingularMatrixError:  # the member is cut back below
                     pass
             timings["solve"] += time.perf_counter() - t0
@@ -279,7 +280,9 @@ def _euler_velocity(model: Model, pack: _Packing, params, dtype, backend: str, h
     v = torch.zeros_like(a0)
     for m in range(N):
         try:
-            v[m] = torch.as_tensor(Factorization(ev.tangents[m], backend).solve(-dr[m].numpy()))
+            lu = Factorization(ev.tangents[m], backend)
+            v[m] = torch.as_tensor(lu.solve(-dr[m].numpy()))
+            lu.release()
         except SingularMatrixError:  # singular initial tangent: start from zero, Newton will tell
             v[m] = 0.0
     if pack.size == model.n_red:
