@@ -261,12 +261,13 @@ class Model:
         Ks = []
         for m in range(a.shape[0]):
             K = self.pattern.to_scipy(data[m])
-            Kr = (Js[m].T @ (K @ Js[m])).tocsr()
+            Kr = Js[m].T @ (K @ Js[m])
             if geo:
-                extra = sp.lil_matrix(Kr.shape)
-                for cols, H in geo:
-                    extra[np.ix_(cols, cols)] = H[m]
-                Kr = (Kr + extra.tocsr()).tocsr()
+                rows = np.concatenate([np.repeat(cols, 3) for cols, _ in geo])
+                cols_ = np.concatenate([np.tile(cols, 3) for cols, _ in geo])
+                vals = np.concatenate([H[m].ravel() for _, H in geo])
+                Kr = Kr + sp.csr_matrix((vals, (rows, cols_)), shape=Kr.shape)
+            Kr = Kr.tocsr()
             Ks.append(Kr)
         return Ks
 

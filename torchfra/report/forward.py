@@ -1,0 +1,97 @@
+"""Files of a forward-ensemble run: ``forward.npz``, ``summary.json``, TensorBoard, VTU, figures."""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import torch
+from matplotlib.figure import Figure
+
+from ..io.vtu import element_fields, write_vtu
+from .tensorboard import log_figure, log_hparams, log_mesh, open_writer
+
+TRACKED_YZ = (0.0, 40.0)  # mm: the node the paper plots (front face, top centre of the cavity span)
+
+
+def band_figure(times, trajectories, labels, title: str, truth=None) -> Figure:
+    """10-90 % bands and means over time. trajectories: list of (N, T) arrays, one panel each."""
+    fig = Figure(figsize=(5.0 * len(trajectories), 3.8), layout="constrained")
+    axes = fig.subplots(1, len(trajectories), squeeze=False)[0]
+    for ax, values, label in zip(axes, trajectories, labels):
+        values = np.asarray(values)
+        lo, hi = np.nanpercentile(values, [10, 90], axis=0)
+        ax.fill_between(times, lo, hi, alpha=0.3, label="10-90 %")
+        ax.plot(times, np.nanmean(values, axis=0), label="mean")
+        ax.set(xlabel="normalized time t", ylabel=label)
+        ax.grid(True, alpha=0.3)
+    axes[0].legend(fontsize="small")
+    fig.suptitle(title)
+    return fig
+
+
+def write_forward_outputs(result: dict, config, run_dir: str | Path) -> dict:
+    """Write every file of the run and return the summary dict."""
+    run_dir = Path(run_dir)
+    model, op, mesh = result["model"], result["operator"], result["model"].mesh
+    params = {k: v.numpy() for k, v in result["params"].items()}
+    names = list(params)
+    converged = result["status"] == "converged"
+    tracked = op.nearest_point(*TRACKED_YZ)
+    np.savez(
+        run_dir / "forward.npz",
+        times=result["times"], pressure=result["pressure"], param_names=np.array(names),
+        params=np.stack([params[k] for k in names], axis=1), points=op.points, point_ids=op.point_ids,
+        Y=result["Y_fe"], status=result["status"], tracked_point_index=tracked,
+    )
+    Y_tr = result["Y_fe"][:, :, tracked]  # (N, T, 2)
+    summary = {
+        "members": int(config.members),
+        "members_converged": int(converged.sum()),
+        "members_failed": [int(m) for m in np.flatnonzero(~converged)],
+        "elements": int(mesh.n_elements),
+        "fiber_elements": int(result["info"]["fiber_elements"]),
+        "nodes": int(model.n_nodes),
+        "dofs": int(model.n_red),
+        "observation_points": int(op.n_points),
+        "frames": int(len(result["times"])),
+        "load_steps": int(config.load_steps),
+        "newton_iterations_total": int(result["iterations"].sum()),
+        "newton_iterations_max": int(result["iterations"].max()),
+        "cutbacks_total": int(result["cutbacks"].sum()),
+        "wall_s": float(result["wall_s"]),
+        "solver_timings_s": result["timings"],
+        "threads": int(torch.get_num_threads()),
+        "tracked_point": {"id": int(op.point_ids[tracked]), "X": op.points[tracked].tolist()},
+        "tracked_displacement_mean": np.nanmean(Y_tr[converged, -1], axis=0).tolist(),
+        "tracked_displacement_p10_p90": np.nanpercentile(Y_tr[converged, -1], [10, 90], axis=0).tolist(),
+        "C10": {"mean": float(params["C10"].mean()), "std": float(params["C10"].std(ddof=1))},
+        "config": asdict(config),
+    }
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=1))
+
+    writer = open_writer(run_dir)
+    for m, history in enumerate(result["history"]):
+        for k, value in enumerate(np.asarray(history, dtype=float)):
+            writer.add_scalar(f"newton/residual/member_{m:03d}", value, k)
+        writer.add_scalar("newton/iterations", float(result["iterations"][m]), m)
+        writer.add_scalar("newton/cutbacks", float(result["cutbacks"][m]), m)
+    for phase, seconds in result["timings"].items():
+        writer.add_scalar(f"timing_s/{phase}", seconds, 0)
+    fig = band_figure(result["times"], [Y_tr[converged, :, 0], Y_tr[converged, :, 1]],
+                      ["tracked u_y (mm)", "tracked u_z (mm)"],
+                      f"prior ensemble, {int(converged.sum())} members, node at (y, z) = {TRACKED_YZ} mm")
+    log_figure(writer, "forward/tracked_node", fig, run_dir / "tracked_node.png")
+    u_mean = result["u_last"][converged].mean(axis=0)
+    log_mesh(writer, "forward/mean_deformed", mesh, u_mean)
+    log_hparams(writer, {k: v for k, v in asdict(config).items() if k != "newton"},
+                {"summary/members_converged": summary["members_converged"], "summary/wall_s": summary["wall_s"]})
+    writer.close()
+
+    solid = model.terms[0]
+    mean_params = {k: torch.tensor([float(np.mean(v))]) for k, v in params.items()}
+    fields = element_fields(solid, torch.as_tensor(u_mean)[None], mean_params)
+    write_vtu(run_dir / "mean_deformed.vtu", model, u_mean,
+              cell_data={k: v[0].numpy() for k, v in fields.items()})
+    return summary
