@@ -44,7 +44,7 @@ class ForwardConfig:
     """Settings of a forward ensemble (units mm, MPa)."""
 
     members: int = 100
-    resolution: int = 2
+    resolution: int = 1
     seed: int = 0
     c10_mean: float = 1.1 * KAPPA_T
     c10_std: float = 0.2 * KAPPA_T
