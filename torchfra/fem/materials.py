@@ -126,10 +126,6 @@ class Material:
         Fp = H[:, :9, 9].reshape(*shape, 3, 3)
         return PointDerivatives(psi, P, GaussPointTangent(dense=A), Fp)
 
-    def energy(self, F, p, prm) -> torch.Tensor:
-        shape, x, pv = self._stack(F, p, prm)
-        return vmap(self._flat_psi)(x, pv).reshape(shape)
-
 
 class NeoHookean(Material):
     r"""Abaqus Neo-Hookean in the perturbed-Lagrangian mixed form (paper Eq. 1).
