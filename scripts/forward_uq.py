@@ -31,10 +31,12 @@ def main(argv=None) -> dict:
     p.add_argument("--bulk-ratio", type=float, default=d.bulk_ratio, help="K / mu of every member")
     p.add_argument("--pressure", type=float, default=d.pressure, help="cavity pressure at t = 1 (MPa)")
     p.add_argument("--threads", type=int, default=d.threads, help="torch CPU threads (recorded)")
+    p.add_argument("--integration", choices=["full", "reduced"], default=d.integration,
+                   help="Hex20 Gauss rule: full 3x3x3 (default) or the paper's reduced 2x2x2")
     a = p.parse_args(argv)
     config = ForwardConfig(members=a.members, resolution=a.mesh, seed=a.seed, load_steps=a.load_steps,
                            frames=a.frames, chunk=a.chunk, bulk_ratio=a.bulk_ratio, pressure=a.pressure,
-                           threads=a.threads)
+                           threads=a.threads, integration=a.integration)
     run_dir = Path(a.runs_dir) / a.out
     summary = write_forward_outputs(run_forward(config, run_dir), config, run_dir)
     print(json.dumps({k: summary[k] for k in ("members", "members_converged", "elements", "fiber_elements",

@@ -23,8 +23,8 @@ from torchfra.forward import KAPPA_T  # noqa: E402
 from torchfra.geometry.actuator import ActuatorGeometry, build_actuator_model  # noqa: E402
 
 
-def solve_resolution(resolution: int, pressure: float, bulk_ratio: float) -> dict:
-    model, info = build_actuator_model(ActuatorGeometry(resolution=resolution))
+def solve_resolution(resolution: int, pressure: float, bulk_ratio: float, integration: str) -> dict:
+    model, info = build_actuator_model(ActuatorGeometry(resolution=resolution), integration=integration)
     C10 = torch.tensor([1.1 * KAPPA_T])
     params = {"C10": C10, "D1": 1.0 / (bulk_ratio * C10), "E_fiber": torch.tensor([31000.0]), "P": torch.tensor([pressure])}
     t0 = time.perf_counter()
@@ -37,7 +37,7 @@ def solve_resolution(resolution: int, pressure: float, bulk_ratio: float) -> dic
     V = cavity.cavity_volume(torch.stack([torch.zeros_like(u), u])).numpy()
     truss = next(t for t in model.terms if isinstance(t, fem.Truss))
     return {
-        "resolution": resolution, "elements": info["elements"], "fiber_elements": info["fiber_elements"],
+        "resolution": resolution, "integration": integration, "elements": info["elements"], "fiber_elements": info["fiber_elements"],
         "dofs": model.n_red, "status": str(sol.status[0]), "iterations": int(sol.iterations[0]),
         "increments": int(sol.increments[0]), "cutbacks": int(sol.cutbacks[0]), "wall_s": wall,
         "timings_s": sol.timings,
@@ -56,6 +56,7 @@ def main(argv=None) -> dict:
     p.add_argument("--pressure", type=float, default=0.022)
     p.add_argument("--bulk-ratio", type=float, default=1000.0)
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--integration", choices=["full", "reduced"], default="full", help="Hex20 Gauss rule")
     p.add_argument("--out", default="actuator_study")
     p.add_argument("--runs-dir", default="runs")
     a = p.parse_args(argv)
@@ -64,7 +65,7 @@ def main(argv=None) -> dict:
     run_dir.mkdir(parents=True, exist_ok=True)
     rows = []
     for r in a.resolutions:
-        rows.append(solve_resolution(r, a.pressure, a.bulk_ratio))
+        rows.append(solve_resolution(r, a.pressure, a.bulk_ratio, a.integration))
         print(json.dumps(rows[-1]), flush=True)
         (run_dir / "summary.json").write_text(json.dumps({"rows": rows}, indent=1))
     finest = np.asarray(rows[-1]["tracked_u_yz_mm"])
@@ -72,7 +73,7 @@ def main(argv=None) -> dict:
         row["tracked_rel_change_vs_finest"] = float(np.linalg.norm(np.asarray(row["tracked_u_yz_mm"]) - finest)
                                                     / np.linalg.norm(finest))
     summary = {"command": "python scripts/study_actuator.py " + " ".join(argv or sys.argv[1:]),
-               "threads": a.threads, "pressure_MPa": a.pressure, "bulk_ratio": a.bulk_ratio, "rows": rows}
+               "threads": a.threads, "integration": a.integration, "pressure_MPa": a.pressure, "bulk_ratio": a.bulk_ratio, "rows": rows}
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     return summary
 

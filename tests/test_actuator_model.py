@@ -69,12 +69,12 @@ def test_bends_away_from_the_cavity(solved):
     R = rotation_matrix(theta).numpy()
     angle = np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))
     assert abs(theta[0]) > 10 * abs(theta[1:]).max()  # about x: bending in the y-z plane
-    assert 30.0 < angle < 60.0  # measured 43.9 deg at this mesh (scripts/study_actuator.py)
+    assert 30.0 < angle < 60.0  # measured 43.6 deg at this mesh (scripts/study_actuator.py)
 
 
 def test_fibers_nearly_inextensible(solved):
-    """Cotton fibers (E = 31 GPa) stretch by ~0.1 % at full pressure (measured max 0.99e-3 at P and
-    1.43e-3 at 2P) while the body strains by tens of percent."""
+    """Cotton fibers (E = 31 GPa) stretch by ~0.1 % at full pressure (measured max 0.93e-3 at P and
+    1.53e-3 at 2P) while the body strains by tens of percent."""
     model, _, _, sol = solved
     truss = next(t for t in model.terms if isinstance(t, fem.Truss))
     strain = truss.axial_strain(sol.u[:, -1])
@@ -83,8 +83,9 @@ def test_fibers_nearly_inextensible(solved):
 
 def test_scaling_law_p_over_c10(solved):
     """u(P, C10) = u(2P, 2C10) up to fiber compliance: the fibers' relative stiffness halves in the
-    second member, so the shapes differ at the level of the fiber strains (measured 1.05e-3 for fiber
-    strains of 0.99e-3 and 1.43e-3; the solves themselves agree with 1e-12-tolerance solves to 1e-14)."""
+    second member, so the shapes differ at the level of the fiber strains (measured 7.4e-4 for fiber
+    strains of 0.93e-3 and 1.53e-3; with reduced integration the default-tolerance solve agreed with a
+    1e-12-tolerance solve to 1e-14, so this is physics, not solver tolerance)."""
     model, _, _, sol = solved
     u1, u2 = sol.u[0, -1], sol.u[1, -1]
     rel = float((u1 - u2).abs().max() / u1.abs().max())

@@ -109,3 +109,8 @@ def test_conflicting_constraints_name_the_node(mesh):
     model.rigid("zmax")
     with pytest.raises(ValueError, match="node .* of a rigid node set is also clamped"):
         model.finalize()
+
+
+def test_unknown_integration_rule(mesh):
+    with pytest.raises(ValueError, match="integration must be 'reduced'"):
+        fem.Hex20Solid(mesh, fem.NeoHookean(), integration="2x2x2")

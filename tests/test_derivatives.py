@@ -61,9 +61,10 @@ PARAMS = {
 
 @pytest.mark.parametrize("formulation", ["hybrid", "displacement"])
 @pytest.mark.parametrize("fast", [True, False])
-def test_solid_derivatives(formulation, fast):
+@pytest.mark.parametrize("integration", ["reduced", "full"])
+def test_solid_derivatives(formulation, fast, integration):
     mesh = box_mesh((1.0, 1.2, 2.0), (1, 2, 2), distortion=0.25)
-    term = fem.Hex20Solid(mesh, fem.NeoHookean(fast=fast), formulation=formulation)
+    term = fem.Hex20Solid(mesh, fem.NeoHookean(fast=fast), formulation=formulation, integration=integration)
     _term_check(term, mesh.n_nodes, PARAMS, amplitude=0.04)
 
 

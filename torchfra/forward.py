@@ -45,6 +45,7 @@ class ForwardConfig:
 
     members: int = 100
     resolution: int = 1
+    integration: str = "full"
     seed: int = 0
     c10_mean: float = 1.1 * KAPPA_T
     c10_std: float = 0.2 * KAPPA_T
@@ -97,7 +98,7 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
     _check_resume(run_dir, config)
     torch.set_num_threads(config.threads)
     t0 = time.perf_counter()
-    model, info = build_actuator_model(ActuatorGeometry(resolution=config.resolution))
+    model, info = build_actuator_model(ActuatorGeometry(resolution=config.resolution), integration=config.integration)
     mesh = model.mesh
     operator = ObservationOperator(mesh, visible_faces(mesh, (1.0, 0.0, 0.0)), points="nodes")
     params = member_parameters(config)

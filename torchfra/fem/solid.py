@@ -28,20 +28,28 @@ class Hex20Solid(Term):
     """A material body on (a subset of) the Hex20 elements of a mesh.
 
     formulation: ``"hybrid"`` (C3D20RH analogue) or ``"displacement"`` (C3D20R analogue).
+    integration: ``"reduced"`` (2x2x2, the C3D20R(H) of the paper) or ``"full"`` (3x3x3, C3D20(H)).
+    Reduced integration leaves near-zero-energy modes in thin layers; a follower or cavity pressure's
+    load stiffness can drive them negative (seen in the actuator's fiber-free cavity ring at
+    resolution 2 beyond 45 % load), which full integration removes.
     """
 
     kind = "internal"
 
-    def __init__(self, mesh: Mesh, material: Material, formulation: str = "hybrid", elements=None, dtype=torch.float64):
+    def __init__(self, mesh: Mesh, material: Material, formulation: str = "hybrid", elements=None,
+                 integration: str = "reduced", dtype=torch.float64):
         if formulation not in ("hybrid", "displacement"):
             raise ValueError(f"formulation must be 'hybrid' or 'displacement', got {formulation!r}")
+        if integration not in ("reduced", "full"):
+            raise ValueError(f"integration must be 'reduced' (2x2x2) or 'full' (3x3x3), got {integration!r}")
+        self.integration = integration
         self.material, self.formulation = material, formulation
         self.param_names = material.param_names
         self.element_ids = np.arange(mesh.n_elements) if elements is None else np.asarray(elements)
         conn = mesh.elements[self.element_ids]
         self.conn = torch.as_tensor(conn)
         self.dofs = node_dofs(conn)
-        pts, wts = gauss_hex(2)
+        pts, wts = gauss_hex(2 if integration == "reduced" else 3)
         _, dN = hex20_shape(pts)
         X = mesh.nodes[conn]
         jac = np.einsum("eai,gaj->egij", X, dN)  # dX_i / dxi_j
