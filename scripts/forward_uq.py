@@ -1,6 +1,6 @@
 """Forward propagation of the prior ensemble through the actuator model (paper Eq. 15).
 
-    python scripts/forward_uq.py --members 100 --mesh 1 --seed 0 --out forward
+    python scripts/forward_uq.py --members 100 --mesh 2 --seed 0 --out forward
 
 writes runs/<out>/: forward.npz (times, pressure, params, points, Y (N, T, P, 2), status),
 summary.json, TensorBoard events, tracked_node.png, mean_deformed.vtu. A killed run resumes from

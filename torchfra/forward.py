@@ -44,7 +44,7 @@ class ForwardConfig:
     """Settings of a forward ensemble (units mm, MPa)."""
 
     members: int = 100
-    resolution: int = 1
+    resolution: int = 2
     integration: str = "full"
     seed: int = 0
     c10_mean: float = 1.1 * KAPPA_T
