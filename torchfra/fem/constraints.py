@@ -62,6 +62,7 @@ class RigidBody:
     nodes: np.ndarray  # (k,) node indices
     X_ref: np.ndarray  # (3,)
     columns: np.ndarray  # (6,) reduced indices: 3 translations, 3 rotations
+    dX: torch.Tensor  # (k, 3) node positions relative to X_ref
 
 
 class DofMap:
@@ -100,7 +101,8 @@ class DofMap:
         for nodes in rigid_sets:
             columns = np.arange(n_red, n_red + 6)
             n_red += 6
-            self.bodies.append(RigidBody(nodes, X[nodes].mean(axis=0), columns))
+            X_ref = X[nodes].mean(axis=0)
+            self.bodies.append(RigidBody(nodes, X_ref, columns, torch.as_tensor(X[nodes] - X_ref, dtype=dtype)))
             for c in range(3):
                 rows.append(3 * nodes + c)
                 cols.append(np.full(nodes.size, columns[c]))
@@ -123,10 +125,7 @@ class DofMap:
         self._T_torch = _csr(self.T, dtype)
         self._TT_torch = None
         self.u_presc = torch.as_tensor(u_presc, dtype=dtype)
-        self.fixed = np.flatnonzero(role == 1)
         self.dtype = dtype
-        for b in self.bodies:
-            b.dX = torch.as_tensor(X[b.nodes] - b.X_ref, dtype=dtype)
 
     # -- maps --------------------------------------------------------------------------------------
     def expand(self, a: torch.Tensor, load_factor: torch.Tensor) -> torch.Tensor:

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -61,9 +61,6 @@ class TubeResult:
     increments: tuple[int, int]
     wall_s: float
     order: float | None = None  # observed order vs the previous (twice coarser) mesh
-
-    def as_dict(self) -> dict:
-        return asdict(self)
 
 
 def quarter_tube_model(A: float, B: float, divisions, thickness: float = 1.0) -> fem.Model:
