@@ -125,3 +125,22 @@ def test_hybrid_newton_takes_a_full_load_step():
     assert sol.status[0] == "converged" and sol.cutbacks[0] == 0 and sol.iterations[0] <= 12
     ref = fem.solve(_bending_model(mesh), params, [1.0])  # default load stepping, same answer
     assert (ref.u - sol.u).abs().max() < 1e-8 * ref.u.abs().max()
+
+
+def test_warm_start_continues_changes_parameters_and_unloads():
+    """A warm start from equilibrium states (as the restart filter uses them) reaches the same
+    equilibrium as a solve from scratch, to 1e-8 relative: continuing the load 0.5 -> 1, with new
+    parameters (C10 +10 %), and unloading 1 -> 0.5 (hyperelastic: path independent)."""
+    mesh = box_mesh((2.0, 2.0, 6.0), (2, 2, 3))
+    model = _bending_model(mesh)
+    p = {"C10": torch.tensor([0.05, 0.08]), "D1": torch.tensor([0.5, 0.2]), "P": torch.tensor([0.003, 0.004])}
+    q = dict(p, C10=p["C10"] * 1.1)
+    half = fem.solve(model, p, [0.5])
+    full_q = fem.solve(model, q, [0.5, 1.0])
+    cont = fem.solve(model, q, [1.0], start=fem.WarmStart(half.x_last, 0.5, 1.0))
+    assert (cont.status == "converged").all()
+    rel = lambda a, b: float((a - b).abs().max() / b.abs().max())  # noqa: E731
+    assert rel(cont.u[:, -1], full_q.u[:, -1]) < 1e-8
+    back = fem.solve(model, q, [1.0], start=fem.WarmStart(cont.x_last, 1.0, 0.5))
+    assert rel(back.u[:, -1], full_q.u[:, 0]) < 1e-8
+    assert back.iterations.max() > 0

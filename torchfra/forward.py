@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -88,6 +89,27 @@ def _check_resume(run_dir: Path, config: ForwardConfig) -> None:
         path.write_text(json.dumps(saved, indent=1))
 
 
+def _claim(lock: Path) -> bool:
+    """Take the lock file of a member chunk, so several worker processes can share one run folder
+    (``python scripts/forward_uq.py`` started twice on a 2-core machine). A lock whose process has
+    died (killed run) is taken over."""
+    try:
+        fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+    except FileExistsError:
+        try:
+            pid = int(lock.read_text() or 0)
+            os.kill(pid, 0)
+            return False  # held by a live worker
+        except (ValueError, ProcessLookupError):
+            lock.unlink(missing_ok=True)
+            return _claim(lock)
+        except PermissionError:
+            return False
+    with os.fdopen(fd, "w") as f:
+        f.write(str(os.getpid()))
+    return True
+
+
 def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = True) -> dict:
     """Solve every member at ``load_steps`` load factors and observe them at the frame times.
 
@@ -111,26 +133,35 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
         from tqdm.auto import tqdm
 
         bar = tqdm(total=config.members, desc=f"forward ensemble ({model.n_red} dofs)", unit="member")
-    records = []
     for start in starts:
         stop = min(start + config.chunk, config.members)
         path = chunks_dir / f"chunk_{start:05d}.npz"
-        if not path.exists():
-            chunk_params = {k: v[start:stop] for k, v in params.items()}
-            sol = fem.solve(model, chunk_params, load, fem.NewtonOptions(**config.newton))
-            u = sol.u[:, :, : mesh.n_nodes]
-            np.savez(
-                path.with_suffix(".tmp.npz"),
-                Y=operator(u).numpy(), u_last=sol.u[:, -1].numpy(),
-                status=sol.status, load_reached=sol.load_reached, iterations=sol.iterations,
-                increments=sol.increments, cutbacks=sol.cutbacks, last_residual=sol.last_residual,
-                history=np.array([np.asarray(h) for h in sol.residual_history], dtype=object),
-                timings=json.dumps(sol.timings),
-            )
-            path.with_suffix(".tmp.npz").replace(path)  # a killed run never leaves half a chunk
-        records.append(dict(np.load(path, allow_pickle=True)))
+        if path.exists() or not _claim(path.with_suffix(".lock")):
+            continue  # done, or another worker on the same run folder is solving it
+        chunk_params = {k: v[start:stop] for k, v in params.items()}
+        sol = fem.solve(model, chunk_params, load, fem.NewtonOptions(**config.newton))
+        u = sol.u[:, :, : mesh.n_nodes]
+        np.savez(
+            path.with_suffix(".tmp.npz"),
+            Y=operator(u).numpy(), u_last=sol.u[:, -1].numpy(),
+            status=sol.status, load_reached=sol.load_reached, iterations=sol.iterations,
+            increments=sol.increments, cutbacks=sol.cutbacks, last_residual=sol.last_residual,
+            history=np.array([np.asarray(h) for h in sol.residual_history], dtype=object),
+            timings=json.dumps(sol.timings),
+        )
+        path.with_suffix(".tmp.npz").replace(path)  # a killed run never leaves half a chunk
+        path.with_suffix(".lock").unlink()
         if bar is not None:
             bar.update(stop - start)
+    records = []
+    for start in starts:  # chunks other workers hold: wait for them (a dead worker's lock is taken over)
+        path = chunks_dir / f"chunk_{start:05d}.npz"
+        while not path.exists():
+            if _claim(path.with_suffix(".lock")):
+                path.with_suffix(".lock").unlink()
+                return run_forward(config, run_dir, progress)
+            time.sleep(2.0)
+        records.append(dict(np.load(path, allow_pickle=True)))
     if bar is not None:
         bar.close()
     Y_steps = np.concatenate([r["Y"] for r in records])  # (N, S, P, 2) at the load steps

@@ -9,7 +9,7 @@ from .constraints import rotation_matrix
 from .materials import Material, NeoHookean, ParameterError
 from .mesh import Mesh, MeshError
 from .model import Evaluation, Model
-from .newton import NewtonOptions, Solution, solve
+from .newton import NewtonOptions, Solution, WarmStart, solve
 from .pressure import CavityPressure, FollowerPressure
 from .solid import Hex20Solid
 from .terms import Term, TermOutput
@@ -18,5 +18,5 @@ from .truss import Truss
 __all__ = [
     "CavityPressure", "Evaluation", "FollowerPressure", "Hex20Solid", "Material", "Mesh", "MeshError",
     "Model", "NeoHookean", "NewtonOptions", "ParameterError", "Solution", "Term", "TermOutput", "Truss",
-    "rotation_matrix", "solve",
+    "rotation_matrix", "solve", "WarmStart",
 ]

@@ -72,6 +72,7 @@ class Solution:
     last_residual: np.ndarray
     residual_history: list[list[float]]
     timings: dict[str, float] = field(default_factory=dict)
+    x_last: torch.Tensor | None = None  # (N, size) packed state [a, element pressures] at the last load
 
     @property
     def converged(self) -> np.ndarray:
@@ -105,14 +106,28 @@ class _Packing:
         return torch.cat([a] + [l.reshape(a.shape[0], -1) for l in local if l is not None], dim=1)
 
 
+@dataclass
+class WarmStart:
+    """Continue from equilibrium states: packed states x (N, size) (``Solution.x_last``) reached at
+    load factors ``lam0`` (N,), towards ``lam1`` (N,); the solve's load factors then run along
+    lam0 + mu (lam1 - lam0), mu in (0, 1]. Parameters may differ from those that made x (the restart
+    filter changes them); the first increment absorbs the change. lam1 < lam0 unloads."""
+
+    x: torch.Tensor
+    lam0: np.ndarray
+    lam1: np.ndarray
+
+
 def solve(
     model: Model,
     params: dict[str, torch.Tensor],
     load_factors=(1.0,),
     options: NewtonOptions | None = None,
     progress: bool = False,
+    start: WarmStart | None = None,
 ) -> Solution:
-    """Solve ``model`` for every member (params: name -> (N,)) at the given load factors in (0, 1]."""
+    """Solve ``model`` for every member (params: name -> (N,)) at the given load factors in (0, 1]
+    (fractions of the path from ``start``, when given, else from the unloaded state)."""
     opt = options or NewtonOptions()
     model.finalize()
     dtype = model.dtype
@@ -139,12 +154,23 @@ def solve(
     last_res = np.full(N, np.nan)
     history: list[list[float]] = [[] for _ in range(N)]
     a_out = torch.full((N, T, n), float("nan"), dtype=dtype)
+    x_last = torch.full((N, pack.size), float("nan"), dtype=dtype)
+
+    if start is None:
+        lam0, lam1 = np.zeros(N), np.ones(N)
+    else:
+        lam0 = np.broadcast_to(np.asarray(start.lam0, dtype=np.float64), (N,)).copy()
+        lam1 = np.broadcast_to(np.asarray(start.lam1, dtype=np.float64), (N,)).copy()
+        if tuple(start.x.shape) != (N, pack.size):
+            raise ValueError(f"warm start states must be ({N}, {pack.size}), got {tuple(start.x.shape)}")
+
+    def load(idx, mu):  # model load factor along the path
+        return torch.as_tensor(lam0[idx] + mu * (lam1[idx] - lam0[idx]), dtype=dtype)
 
     def evaluate(idx, xx, tangent=False):
         t0 = time.perf_counter()
         aa, local = pack.split(xx)
-        ev = model.evaluate(aa, _members(params, idx), torch.as_tensor(lam[idx], dtype=dtype), tangent=tangent,
-                            local=local)
+        ev = model.evaluate(aa, _members(params, idx), load(idx, lam[idx]), tangent=tangent, local=local)
         timings["tangent" if tangent else "residual"] += time.perf_counter() - t0
         return ev
 
@@ -167,9 +193,14 @@ def solve(
 
         bar = tqdm(total=100, desc=f"Newton, {N} members", unit="% load", bar_format="{l_bar}{bar}| {n:.0f}/{total}%")
 
-    # Euler predictor for the first increment: dx/dlambda = -K^-1 dr/dlambda at the unloaded state.
-    velocity = _euler_velocity(model, pack, params, dtype, opt.linear_solver)
-    x = torch.as_tensor(lam, dtype=dtype)[:, None] * velocity
+    if start is None:
+        # Euler predictor for the first increment: dx/dlambda = -K^-1 dr/dlambda at the unloaded state.
+        velocity = _euler_velocity(model, pack, params, dtype, opt.linear_solver)
+        x = torch.as_tensor(lam, dtype=dtype)[:, None] * velocity
+    else:  # the previous equilibrium is the first predictor
+        velocity = torch.zeros(N, pack.size, dtype=dtype)
+        x = start.x.to(dtype).clone()
+        x_conv, x_prev = x.clone(), x.clone()
     ls_base, ls_dx = torch.zeros_like(x), torch.zeros_like(x)
     ls_alpha, ls_count = np.ones(N), np.zeros(N, dtype=np.int64)
     ls_pending, r_prev, rel_prev = np.zeros(N, dtype=bool), np.zeros(N), np.full(N, np.inf)
@@ -207,6 +238,7 @@ def solve(
                     a_out[m, nxt[m]] = x[m, :n]
                     nxt[m] += 1
                     if nxt[m] == T:
+                        x_last[m] = x[m]
                         active[m] = False
                         continue
                 if it[m] <= opt.easy_iterations:
@@ -263,10 +295,9 @@ def solve(
     for k in range(T):
         done = torch.as_tensor(nxt > k)
         if done.any():
-            lam_k = torch.full((int(done.sum()),), outs[k], dtype=dtype)
-            u_out[done, k] = model.displacement(a_out[done, k], lam_k)
+            u_out[done, k] = model.displacement(a_out[done, k], load(np.flatnonzero(nxt > k), outs[k]))
     return Solution(outs, u_out, a_out, status.astype(str), lam_conv.copy(), iterations, increments, cutbacks,
-                    last_res, history, timings)
+                    last_res, history, timings, x_last)
 
 
 def _euler_velocity(model: Model, pack: _Packing, params, dtype, backend: str, h: float = 1e-6) -> torch.Tensor:

@@ -1,0 +1,343 @@
+"""The actuator calibration experiment (paper §4.1) on top of the forward ensemble: recordings in,
+the four posteriors of C10 out (hierarchical, hierarchical with nonlinear slave, restart, exact).
+
+Frames of a recording are tied to the model by their pressure: the body is hyperelastic and loaded
+quasi-statically, so its state depends on the current pressure only, and the FE response at a
+frame is the forward solution at load factor ``pressure / P_forward`` (interpolated between the
+forward's load steps). A loading-unloading trace is therefore served by the same forward ensemble;
+a frame whose pressure exceeds the forward's is refused (rerun the forward with a larger
+``pressure``). Hysteresis, once modelled, will need the solver to follow the trace instead.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+
+from . import fem
+from .forward import ForwardConfig, lognormal_parameters
+from .geometry.actuator import ActuatorGeometry, build_actuator_model
+from .observe import ObservationError, ObservationOperator, frame_times, visible_faces
+from .recordings import Recording, RecordingError
+
+
+@dataclass
+class CalibrationConfig:
+    """Settings of a calibration run (units mm, MPa). ``recording`` None makes a synthetic one at
+    ``truth_c10`` with noise N(0, noise^2) per component (the paper's experiment)."""
+
+    members: int = 100
+    resolution: int = 1
+    seed: int = 0
+    recording: str | None = None
+    truth_c10: float = 0.0048
+    noise: float = 1.0
+    noise_seed: int = 1
+    points: str = "nodes"  # synthetic recordings: "nodes" or a DIC grid spacing in mm, e.g. "2.0"
+    frames: int = 100
+    filter_seed: int = 2
+    degree: int = 3
+    restart: bool = True
+    restart_every: int = 10
+    coverage_seeds: int = 20
+    grid: int = 4000
+    pressure: float = 0.022  # MPa at t = 1 of the synthetic recording; the forward ensemble's range
+    load_steps: int = 20
+
+
+SEED = CalibrationConfig()  # --config seed: the paper's numerical experiment (§4.1)
+
+
+def forward_config(config: CalibrationConfig) -> ForwardConfig:
+    return ForwardConfig(members=config.members, resolution=config.resolution, seed=config.seed,
+                         pressure=config.pressure, load_steps=config.load_steps)
+
+
+def recording_operator(mesh, rec: Recording, tol: float = 1e-3) -> ObservationOperator:
+    """Match the recording's points to the camera-visible face by reference coordinates; a point off
+    the face raises an error naming its id."""
+    faces = visible_faces(mesh, (1.0, 0.0, 0.0))
+    try:
+        return ObservationOperator(mesh, faces, points=rec.X, point_ids=rec.point_ids, tol=tol)
+    except ObservationError as exc:
+        raise RecordingError(f"{rec.source}: {exc}") from exc
+
+
+def load_factors(rec: Recording, pressure_max: float) -> np.ndarray:
+    lam = rec.pressure / pressure_max
+    bad = np.flatnonzero((lam < -1e-12) | (lam > 1 + 1e-9))
+    if bad.size:
+        k = int(bad[0])
+        raise RecordingError(f"{rec.source}: frame {rec.frames[k]} has pressure {rec.pressure[k]:g} MPa, outside "
+                             f"the forward ensemble's range [0, {pressure_max:g}] MPa; rerun the forward "
+                             "ensemble with a larger pressure")
+    return np.clip(lam, 0.0, 1.0)
+
+
+def forecast_at_frames(Y_steps: np.ndarray, steps: np.ndarray, lam: np.ndarray, W) -> np.ndarray:
+    """Y_steps (N, S, P_fwd, 2) at load factors ``steps`` (S,) -> (N, K, P_rec, 2) at the frames'
+    load factors ``lam`` (K,) and the recording's points (W: (P_rec, P_fwd) face interpolation)."""
+    s = np.concatenate([[0.0], steps])
+    Ys = np.concatenate([np.zeros_like(Y_steps[:, :1]), Y_steps], axis=1)
+    i = np.clip(np.searchsorted(s, lam, side="right") - 1, 0, s.size - 2)
+    w = ((lam - s[i]) / (s[i + 1] - s[i]))[None, :, None, None]
+    Yk = (1 - w) * Ys[:, i] + w * Ys[:, i + 1]  # (N, K, P_fwd, 2)
+    N, K, P, C = Yk.shape
+    flat = np.moveaxis(Yk, 2, 0).reshape(P, -1)
+    return np.moveaxis((W @ flat).reshape(W.shape[0], N, K, C), 0, 2)
+
+
+def point_map(rec_op: ObservationOperator, fwd_op: ObservationOperator) -> sp.csr_matrix:
+    """(P_rec, P_fwd) weights: recording points from the forward's observed face nodes."""
+    W = rec_op.weights.tocsc()[:, fwd_op.point_ids]
+    lost = np.asarray(rec_op.weights.sum(axis=1)).ravel() - np.asarray(W.sum(axis=1)).ravel()
+    if np.abs(lost).max(initial=0) > 1e-9:
+        raise ObservationError("recording points use face nodes the forward ensemble did not observe")
+    return W.tocsr()
+
+
+# -- the FE model at given parameters ----------------------------------------------------------------
+
+class ActuatorSolver:
+    """The actuator at resolution ``resolution`` for C10 values, observed at a recording's points."""
+
+    def __init__(self, resolution: int, rec: Recording | None = None, fwd: ForwardConfig | None = None):
+        self.fwd = fwd or ForwardConfig(resolution=resolution)
+        self.model, self.info = build_actuator_model(ActuatorGeometry(resolution=resolution),
+                                                     integration=self.fwd.integration)
+        self.model.finalize()
+        self.mesh = self.model.mesh
+        self.operator = None if rec is None else recording_operator(self.mesh, rec)
+
+    def params(self, c10) -> dict[str, torch.Tensor]:
+        c10 = torch.as_tensor(c10, dtype=torch.float64).reshape(-1)
+        N = c10.shape[0]
+        return {"C10": c10, "D1": 1.0 / (self.fwd.bulk_ratio * c10),
+                "E_fiber": torch.full((N,), self.fwd.E_fiber, dtype=torch.float64),
+                "P": torch.full((N,), self.fwd.pressure, dtype=torch.float64)}
+
+    def options(self, **kw) -> fem.NewtonOptions:
+        return fem.NewtonOptions(**{**self.fwd.newton, **kw})
+
+
+def synthetic_recording(c10: float, resolution: int = 1, points="nodes", noise: float = 1.0, seed: int = 0,
+                        times=None, pressure=None, progress: bool = False) -> tuple[Recording, np.ndarray]:
+    """A recording made by the model itself at C10 = ``c10``: the FE model is solved at every
+    frame's pressure (no interpolation in time), observed at ``points`` ("nodes" of the visible
+    face, or a DIC-like grid spacing in mm), and perturbed with N(0, noise^2) per component.
+    Returns the recording and its noise-free observations (K, P, 2)."""
+    from .observe import regular_grid
+
+    times = frame_times(100) if times is None else np.asarray(times, dtype=np.float64)
+    fwd = ForwardConfig(resolution=resolution)
+    pressure = fwd.pressure * times if pressure is None else np.asarray(pressure, dtype=np.float64)
+    solver = ActuatorSolver(resolution, fwd=ForwardConfig(resolution=resolution, pressure=float(np.max(pressure))))
+    mesh = solver.mesh
+    faces = visible_faces(mesh, (1.0, 0.0, 0.0))
+    if isinstance(points, str) and points == "nodes":
+        op = ObservationOperator(mesh, faces, points="nodes")
+    else:
+        op = ObservationOperator(mesh, faces, points=regular_grid(mesh, faces, float(points)))
+    lam = pressure / solver.fwd.pressure
+    distinct = np.unique(lam[lam > 0])
+    sol = fem.solve(solver.model, solver.params([c10]), distinct, solver.options(), progress=progress)
+    if sol.status[0] != "converged":
+        raise RuntimeError(f"the model did not converge at C10 = {c10} (reached load {sol.load_reached[0]:.3f})")
+    Y = op(sol.u[0, :, : mesh.n_nodes]).numpy()  # (distinct, P, 2)
+    clean = np.zeros((len(times), op.n_points, 2))
+    pos = lam > 0
+    clean[pos] = Y[np.searchsorted(distinct, lam[pos])]
+    rng = np.random.default_rng(seed)
+    Z = clean + noise * rng.standard_normal(clean.shape)
+    rec = Recording(np.arange(len(times)), times, pressure, np.asarray(op.point_ids), op.points, Z, "synthetic")
+    return rec, clean
+
+
+# -- restart filter: FE solves of the current ensemble ------------------------------------------------
+
+class RestartForecaster:
+    """Forecast observations by re-solving every member at the frame's pressure with its current
+    parameters, warm-started from its own previous equilibrium (the state-export variant of the
+    paper §3.3). Counts FE solves (member x assimilation step) and Newton iterations."""
+
+    def __init__(self, solver: ActuatorSolver, lam: np.ndarray, N: int):
+        self.solver, self.lam = solver, lam
+        pack = fem.newton._Packing(solver.model)
+        self.x = torch.zeros(N, pack.size, dtype=torch.float64)
+        self.lam_now = np.zeros(N)
+        self.fe_solves = 0
+        self.newton_iterations = 0
+
+    def state(self) -> dict:
+        return {"x": self.x, "lam_now": self.lam_now, "fe_solves": self.fe_solves,
+                "newton_iterations": self.newton_iterations}
+
+    def load_state(self, s: dict) -> None:
+        self.x, self.lam_now = s["x"], s["lam_now"]
+        self.fe_solves, self.newton_iterations = s["fe_solves"], s["newton_iterations"]
+
+    def __call__(self, Q: torch.Tensor, k: int) -> torch.Tensor:
+        s = self.solver
+        target = np.full(len(Q), self.lam[k])
+        sol = fem.solve(s.model, s.params(torch.exp(Q[:, 0])), [1.0],
+                        s.options(initial_increment=1.0), start=fem.WarmStart(self.x, self.lam_now, target))
+        self.fe_solves += len(Q)
+        self.newton_iterations += int(sol.iterations.sum())
+        failed = np.flatnonzero(sol.status != "converged")
+        if failed.size:
+            raise RuntimeError(f"restart filter: members {failed.tolist()} did not converge at frame index {k} "
+                               f"(C10 = {torch.exp(Q[failed, 0]).tolist()}); the run can be resumed after a fix")
+        self.x, self.lam_now = sol.x_last, target
+        Y = s.operator(sol.u[:, -1, : s.mesh.n_nodes])
+        return Y.reshape(len(Q), -1)
+
+
+def config_dict(config: CalibrationConfig) -> dict:
+    return json.loads(json.dumps(asdict(config)))
+
+
+# -- the experiment ----------------------------------------------------------------------------------
+
+FILTERS = ("hierarchical", "hierarchical_nonlinear", "restart", "exact")
+
+
+def _stats(c10) -> dict[str, float]:
+    from .assimilation import summarize
+
+    return summarize(np.asarray(c10).reshape(-1))
+
+
+def _load_recording(config: CalibrationConfig, run_dir: Path, progress: bool):
+    """The recording to calibrate on, and its noise-free observations and truth when synthetic."""
+    from .recordings import read_recording, write_recording
+
+    if config.recording is not None:
+        return read_recording(config.recording), None, None
+    path, clean_path = run_dir / "recording.csv", run_dir / "recording_clean.npz"
+    if path.exists() and clean_path.exists():
+        return read_recording(path), np.load(clean_path)["clean"], config.truth_c10
+    times = frame_times(config.frames)
+    rec, clean = synthetic_recording(config.truth_c10, config.resolution, config.points, config.noise,
+                                     config.noise_seed, times, config.pressure * times, progress=progress)
+    np.savez(clean_path, clean=clean)
+    write_recording(path, rec)
+    return read_recording(path), clean, config.truth_c10
+
+
+def _restart(config, run_dir, rec, lam, Q0, Z, r, tracked, progress):
+    """Restart filter on every ``restart_every``-th frame, checkpointed after each step."""
+    from .assimilation import FilterResult, sequential_filter
+
+    idx = np.arange(config.restart_every - 1, rec.n_frames, config.restart_every)
+    ckpt = run_dir / "restart_checkpoint.pt"
+    solver = ActuatorSolver(config.resolution, rec, forward_config(config))
+    fc = RestartForecaster(solver, lam[idx], Q0.shape[0])
+    gen = torch.Generator().manual_seed(config.filter_seed + 100)
+    result = None
+    if ckpt.exists():
+        saved = torch.load(ckpt, weights_only=False)
+        if saved["config"] == config_dict(config):
+            result = saved["result"]
+            gen.set_state(saved["generator"])
+            fc.load_state(saved["forecaster"])
+
+    def checkpoint(res: FilterResult, g: torch.Generator) -> None:
+        res.fe_solves, res.newton_iterations = fc.fe_solves, fc.newton_iterations
+        tmp = ckpt.with_suffix(".tmp")
+        torch.save({"config": config_dict(config), "result": res, "generator": g.get_state(),
+                    "forecaster": fc.state()}, tmp)
+        tmp.replace(ckpt)
+
+    res = sequential_filter(Q0, fc, Z[idx], r, gen, tracked=tracked, result=result, checkpoint=checkpoint,
+                            progress="restart filter (FE solves)" if progress else None)
+    res.fe_solves, res.newton_iterations = fc.fe_solves, fc.newton_iterations
+    return res, idx
+
+
+def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True) -> dict:
+    """Run every filter on the recording; return everything the report needs (see scripts/calibrate.py)."""
+    from .assimilation import SweepMap, grid_posterior, hierarchical_filter
+    from .forward import run_forward
+
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    fwd_cfg = forward_config(config)
+    fwd = run_forward(fwd_cfg, run_dir / "forward", progress=progress)
+    ok = fwd["status"] == "converged"
+    if not ok.all():  # flagged, never silently replaced: the filters run on the converged members
+        print(f"forward members {np.flatnonzero(~ok).tolist()} did not converge; they are left out of the filters")
+    rec, clean, truth = _load_recording(config, run_dir, progress)
+    mesh = fwd["model"].mesh
+    rec_op = recording_operator(mesh, rec)
+    W = point_map(rec_op, fwd["operator"])
+    lam = load_factors(rec, fwd_cfg.pressure)
+    Y_fe = forecast_at_frames(fwd["Y_steps"][ok], fwd["load_factors"], lam, W)  # (N, K, P, 2)
+    N, K, P, _ = Y_fe.shape
+    Yt = torch.as_tensor(Y_fe.reshape(N, K, -1))
+    Q0 = torch.log(fwd["params"]["C10"][torch.as_tensor(ok)])[:, None]
+    Z = torch.as_tensor(rec.Z.reshape(K, -1))
+    r = torch.full((Z.shape[1],), config.noise ** 2, dtype=torch.float64)
+    row = rec_op.nearest_point(0.0, 40.0)
+    tracked = [2 * row, 2 * row + 1]
+    mu, sigma = lognormal_parameters(fwd_cfg.c10_mean, fwd_cfg.c10_std)
+
+    out: dict = {"config": config, "forward": fwd, "recording": rec, "clean": clean, "truth": truth,
+                 "Y_fe": Y_fe, "Q0": Q0, "tracked_row": row, "tracked_point": rec_op.points[row].tolist(),
+                 "filters": {}}
+    for name, slave in (("hierarchical", "linear"), ("hierarchical_nonlinear", "polynomial")):
+        res, s = hierarchical_filter(Q0, Yt, Z, r, torch.Generator().manual_seed(config.filter_seed),
+                                     slave=slave, degree=config.degree, tracked=tracked)
+        out["filters"][name] = {"result": res, "frames": np.arange(K)}
+    t0 = time.perf_counter()
+    sweep = SweepMap(Q0[:, 0].numpy(), Y_fe.reshape(N, K, -1))
+    exact = grid_posterior(sweep, rec.Z.reshape(K, -1), config.noise ** 2, mu, sigma, config.grid)
+    out["filters"]["exact"] = {"posterior": exact, "frames": np.arange(K), "wall_s": time.perf_counter() - t0}
+    out["sweep_loo_error"] = sweep.leave_one_out_error()
+    out["sweep"] = sweep
+    if config.restart:
+        res, idx = _restart(config, run_dir, rec, lam, Q0, Z, r, tracked, progress)
+        out["filters"]["restart"] = {"result": res, "frames": idx}
+        out["exact_restart_frames"] = grid_posterior(sweep, rec.Z.reshape(K, -1), config.noise ** 2, mu, sigma,
+                                                     config.grid, frames=idx)
+    # How far each hierarchical slave's forecast is from the FE map (spline through the FE sweep) at
+    # the ensemble it forecast for: the slave's linearization error along the way.
+    for name in ("hierarchical", "hierarchical_nonlinear"):
+        res = out["filters"][name]["result"]
+        err = []
+        for k in range(K):
+            fe = sweep(res.Q[k][:, 0].numpy())[:, k, :][:, tracked]  # (N, 2)
+            err.append(np.sqrt(((res.Y_tracked[k].numpy() - fe) ** 2).mean(0)))
+        out["filters"][name]["slave_error_tracked"] = np.asarray(err)  # (K, 2) RMS over members, mm
+    if clean is not None and config.coverage_seeds > 0:
+        out["coverage"] = coverage_study(config, Q0, Yt, sweep, clean.reshape(K, -1), truth, mu, sigma)
+    return out
+
+
+def coverage_study(config, Q0, Yt, sweep, clean, truth, mu, sigma) -> dict:
+    """Re-draw the recording's noise ``coverage_seeds`` times (no FE solve) and count how often each
+    filter's 10-90 % interval holds the truth (expected 80 %; binomial std 9 % at 20 seeds)."""
+    from .assimilation import grid_posterior, hierarchical_filter
+
+    r = torch.full((clean.shape[1],), config.noise ** 2, dtype=torch.float64)
+    rows = {k: [] for k in ("hierarchical", "hierarchical_nonlinear", "exact")}
+    for s in range(config.coverage_seeds):
+        rng = np.random.default_rng(10_000 + s)
+        Zs = clean + config.noise * rng.standard_normal(clean.shape)
+        Zt = torch.as_tensor(Zs)
+        for name, slave in (("hierarchical", "linear"), ("hierarchical_nonlinear", "polynomial")):
+            res, _ = hierarchical_filter(Q0, Yt, Zt, r, torch.Generator().manual_seed(config.filter_seed + s),
+                                         slave=slave, degree=config.degree)
+            rows[name].append(_stats(torch.exp(res.Q[-1])))
+        rows["exact"].append(grid_posterior(sweep, Zs, config.noise ** 2, mu, sigma, config.grid).stats())
+    out = {}
+    for name, st in rows.items():
+        inside = [s["p10"] <= truth <= s["p90"] for s in st]
+        out[name] = {"coverage_80": float(np.mean(inside)), "seeds": len(st),
+                     "mean_of_means": float(np.mean([s["mean"] for s in st])),
+                     "mean_std": float(np.mean([s["std"] for s in st]))}
+    return out

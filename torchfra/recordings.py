@@ -1,0 +1,220 @@
+"""Recordings: what a camera (DIC) and a pressure sensor give, and nothing else (DESIGN §6).
+
+CSV, one row per point per frame::
+
+    frame,time,pressure,point_id,X,Y,Z,uy,uz
+
+time normalized (or in s), pressure in MPa, reference coordinates X, Y, Z and displacements uy, uz
+in mm. An empty or NaN ``uy``/``uz`` is a missing observation; a point absent from a frame is
+missing too. Missing values are masked (NaN in ``Recording.Z``), never zero-filled. The NPZ form holds
+the same names as arrays.
+
+Validation refuses, naming the culprit: an empty file, missing columns, a frame without a finite
+time or pressure or with two different times, duplicated ``(frame, point_id)`` rows, times that do
+not increase with the frame number, a point whose reference coordinates change between frames, and
+displacements larger than ``max_displacement`` (default 1000 mm; a unit mix-up such as metres vs
+mm shows up as values off by 1000).
+"""
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+COLUMNS = ("frame", "time", "pressure", "point_id", "X", "Y", "Z", "uy", "uz")
+
+
+class RecordingError(ValueError):
+    """A recording that cannot be used as it is; the message names the file, row, frame or point."""
+
+
+@dataclass
+class Recording:
+    """K frames x P points.
+
+    frames (K,) int, times (K,), pressure (K,) MPa, point_ids (P,) int, X (P, 3) mm reference
+    coordinates, Z (K, P, 2) observed (uy, uz) in mm with NaN where not observed.
+    """
+
+    frames: np.ndarray
+    times: np.ndarray
+    pressure: np.ndarray
+    point_ids: np.ndarray
+    X: np.ndarray
+    Z: np.ndarray
+    source: str = "<memory>"
+
+    @property
+    def mask(self) -> np.ndarray:
+        """(K, P, 2) True where observed."""
+        return np.isfinite(self.Z)
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.frames)
+
+    @property
+    def n_points(self) -> int:
+        return len(self.point_ids)
+
+    def select_frames(self, keep) -> "Recording":
+        keep = np.asarray(keep)
+        return Recording(self.frames[keep], self.times[keep], self.pressure[keep], self.point_ids, self.X,
+                         self.Z[keep], self.source)
+
+    def with_Z(self, Z: np.ndarray) -> "Recording":
+        return Recording(self.frames, self.times, self.pressure, self.point_ids, self.X, np.asarray(Z), self.source)
+
+
+def _table_from_csv(path: Path) -> dict[str, np.ndarray]:
+    with open(path, newline="") as f:
+        reader = csv.reader(f)
+        header = next(reader, None)
+        if header is None:
+            raise RecordingError(f"{path}: the file is empty; a recording needs the header "
+                                 f"{','.join(COLUMNS)} and one row per point per frame")
+        header = [h.strip() for h in header]
+        missing = [c for c in COLUMNS if c not in header]
+        if missing:
+            raise RecordingError(f"{path}: missing column(s) {', '.join(missing)}; the header must name "
+                                 f"{','.join(COLUMNS)} (got {','.join(header)})")
+        col = {c: header.index(c) for c in COLUMNS}
+        rows = []
+        for line, row in enumerate(reader, start=2):
+            if not row or all(not v.strip() for v in row):
+                continue
+            try:
+                rows.append([float(row[col[c]]) if row[col[c]].strip() else np.nan for c in COLUMNS])
+            except (ValueError, IndexError) as exc:
+                raise RecordingError(f"{path}, line {line}: cannot read {row!r} as numbers ({exc})") from exc
+    if not rows:
+        raise RecordingError(f"{path}: the file has a header but no rows")
+    table = np.asarray(rows, dtype=np.float64)
+    return {c: table[:, i] for i, c in enumerate(COLUMNS)}
+
+
+def _table_from_npz(path: Path) -> dict[str, np.ndarray]:
+    with np.load(path) as data:
+        missing = [c for c in COLUMNS if c not in data.files]
+        if missing:
+            raise RecordingError(f"{path}: missing array(s) {', '.join(missing)}; an NPZ recording holds "
+                                 f"the arrays {', '.join(COLUMNS)}, one entry per point per frame")
+        table = {c: np.asarray(data[c], dtype=np.float64).reshape(-1) for c in COLUMNS}
+    n = {c: v.size for c, v in table.items()}
+    if len(set(n.values())) != 1:
+        raise RecordingError(f"{path}: arrays differ in length {n}")
+    if next(iter(n.values())) == 0:
+        raise RecordingError(f"{path}: the recording is empty")
+    return table
+
+
+def from_table(t: dict[str, np.ndarray], source: str = "<memory>", max_displacement: float = 1000.0) -> Recording:
+    """Validate a long table (one entry per point per frame) and arrange it as frames x points."""
+    for c in ("frame", "point_id"):
+        v = t[c]
+        bad = np.flatnonzero(~np.isfinite(v) | (v != np.round(v)))
+        if bad.size:
+            raise RecordingError(f"{source}: row {bad[0] + 1} has {c} = {v[bad[0]]!r}; {c} must be an integer")
+    for c in ("X", "Y", "Z"):
+        bad = np.flatnonzero(~np.isfinite(t[c]))
+        if bad.size:
+            raise RecordingError(f"{source}: point {int(t['point_id'][bad[0]])} (frame {int(t['frame'][bad[0]])}) "
+                                 f"has no reference coordinate {c}; every row needs X, Y, Z in mm")
+    frame, pid = t["frame"].astype(np.int64), t["point_id"].astype(np.int64)
+    frames, fi = np.unique(frame, return_inverse=True)
+    pids, pi = np.unique(pid, return_inverse=True)
+    K, P = len(frames), len(pids)
+    key = fi * P + pi
+    uniq, counts = np.unique(key, return_counts=True)
+    if np.any(counts > 1):
+        k = int(uniq[np.argmax(counts > 1)])
+        raise RecordingError(f"{source}: point {pids[k % P]} appears {counts.max()} times in frame "
+                             f"{frames[k // P]}; each (frame, point_id) must appear once")
+    times, pressure = np.full(K, np.nan), np.full(K, np.nan)
+    for name, out in (("time", times), ("pressure", pressure)):
+        v = t[name]
+        lo = np.full(K, np.inf)
+        hi = np.full(K, -np.inf)
+        np.minimum.at(lo, fi, np.where(np.isfinite(v), v, np.inf))
+        np.maximum.at(hi, fi, np.where(np.isfinite(v), v, -np.inf))
+        bad = np.flatnonzero(~np.isfinite(lo))
+        if bad.size:
+            raise RecordingError(f"{source}: frame {frames[bad[0]]} has no finite {name}; every frame needs "
+                                 f"its {name} (drop the frame if the sensor failed)")
+        diff = np.flatnonzero(hi - lo > 1e-9 * np.maximum(1.0, np.abs(hi)))
+        if diff.size:
+            raise RecordingError(f"{source}: frame {frames[diff[0]]} has rows with different {name}s "
+                                 f"({lo[diff[0]]:g} and {hi[diff[0]]:g})")
+        out[:] = lo
+    dec = np.flatnonzero(np.diff(times) <= 0)
+    if dec.size:
+        k = int(dec[0])
+        raise RecordingError(f"{source}: time does not increase from frame {frames[k]} (t = {times[k]:g}) to "
+                             f"frame {frames[k + 1]} (t = {times[k + 1]:g}); frames must be in time order")
+    X = np.full((P, 3), np.nan)
+    X[pi] = np.stack([t["X"], t["Y"], t["Z"]], axis=1)
+    spread = np.zeros(P)
+    for c, col in enumerate(("X", "Y", "Z")):
+        lo = np.full(P, np.inf)
+        hi = np.full(P, -np.inf)
+        np.minimum.at(lo, pi, t[col])
+        np.maximum.at(hi, pi, t[col])
+        spread = np.maximum(spread, hi - lo)
+    bad = np.flatnonzero(spread > 1e-6)
+    if bad.size:
+        raise RecordingError(f"{source}: point {pids[bad[0]]} changes its reference coordinates between frames "
+                             f"(by {spread[bad[0]]:.3g} mm); X, Y, Z are the reference position")
+    Z = np.full((K, P, 2), np.nan)
+    Z[fi, pi, 0], Z[fi, pi, 1] = t["uy"], t["uz"]
+    big = np.abs(np.nan_to_num(Z)) > max_displacement
+    if big.any():
+        k, p, c = np.argwhere(big)[0]
+        raise RecordingError(f"{source}: frame {frames[k]}, point {pids[p]}: u{'yz'[c]} = {Z[k, p, c]:g} mm is "
+                             f"larger than {max_displacement:g} mm; check the units (mm expected)")
+    return Recording(frames, times, pressure, pids, X, Z, source)
+
+
+def read_recording(path, max_displacement: float = 1000.0) -> Recording:
+    """Read and validate a recording (``.csv`` or ``.npz``)."""
+    path = Path(path)
+    if not path.exists():
+        raise RecordingError(f"{path}: no such recording")
+    if path.suffix.lower() == ".npz":
+        table = _table_from_npz(path)
+    elif path.suffix.lower() == ".csv":
+        table = _table_from_csv(path)
+    else:
+        raise RecordingError(f"{path}: unknown recording format {path.suffix!r}; use .csv or .npz")
+    return from_table(table, str(path), max_displacement)
+
+
+def to_table(rec: Recording) -> dict[str, np.ndarray]:
+    K, P = rec.n_frames, rec.n_points
+    fi, pi = np.repeat(np.arange(K), P), np.tile(np.arange(P), K)
+    return {
+        "frame": rec.frames[fi], "time": rec.times[fi], "pressure": rec.pressure[fi], "point_id": rec.point_ids[pi],
+        "X": rec.X[pi, 0], "Y": rec.X[pi, 1], "Z": rec.X[pi, 2],
+        "uy": rec.Z[fi, pi, 0], "uz": rec.Z[fi, pi, 1],
+    }
+
+
+def write_recording(path, rec: Recording) -> Path:
+    """Write ``rec`` as CSV or NPZ (by suffix); NaN (not observed) is written as an empty CSV field."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    table = to_table(rec)
+    if path.suffix.lower() == ".npz":
+        np.savez(path, **table)
+        return path
+    if path.suffix.lower() != ".csv":
+        raise RecordingError(f"{path}: unknown recording format {path.suffix!r}; use .csv or .npz")
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(COLUMNS)
+        ints = {"frame", "point_id"}
+        for i in range(len(table["frame"])):
+            w.writerow([int(table[c][i]) if c in ints else ("" if not np.isfinite(table[c][i]) else repr(float(table[c][i])))
+                        for c in COLUMNS])
+    return path
