@@ -10,6 +10,8 @@ run resumes without redoing finished FE work.
 """
 import argparse
 import json
+import os
+import subprocess
 import sys
 import time
 from dataclasses import replace
@@ -19,10 +21,26 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-from torchfra.calibration import SEED, CalibrationConfig, run_calibration  # noqa: E402
+from torchfra.calibration import SEED, CalibrationConfig, forward_config, run_calibration  # noqa: E402
 from torchfra.report.calibration import write_calibration_outputs  # noqa: E402
 
 CONFIGS = {"seed": SEED}
+
+
+def start_forward_helpers(config: CalibrationConfig, run_dir: Path, n: int) -> list:
+    """Extra processes that solve chunks of the same forward ensemble (they share the run folder
+    through chunk locks, see torchfra.forward); none when the ensemble is already on disk."""
+    fwd = forward_config(config)
+    done = run_dir / "forward" / "members" / f"chunk_{(fwd.members - 1) // fwd.chunk * fwd.chunk:05d}.npz"
+    if n <= 0 or (run_dir / "forward" / "forward.npz").exists() or done.exists():
+        return []
+    (run_dir / "forward").mkdir(parents=True, exist_ok=True)
+    cmd = [sys.executable, str(Path(__file__).with_name("forward_uq.py")), "--members", str(fwd.members),
+           "--mesh", str(fwd.resolution), "--seed", str(fwd.seed), "--pressure", repr(fwd.pressure),
+           "--load-steps", str(fwd.load_steps), "--chunk", str(fwd.chunk), "--threads", str(fwd.threads),
+           "--runs-dir", str(run_dir), "--out", "forward", "--quiet"]
+    env = dict(os.environ, MKL_NUM_THREADS=str(fwd.threads), OMP_NUM_THREADS=str(fwd.threads))
+    return [subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL) for _ in range(n)]
 
 
 def main(argv=None) -> dict:
@@ -39,6 +57,8 @@ def main(argv=None) -> dict:
     p.add_argument("--restart-every", type=int, default=None, help="restart filter assimilates every n-th frame")
     p.add_argument("--coverage-seeds", type=int, default=None, help="noise re-draws for the coverage study")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (recorded)")
+    p.add_argument("--workers", type=int, default=2,
+                   help="processes solving forward-ensemble chunks side by side (one per core)")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     torch.set_default_dtype(torch.float64)
@@ -49,7 +69,15 @@ def main(argv=None) -> dict:
         config = replace(config, restart=False)
     run_dir = Path(a.runs_dir) / (a.name or a.config)
     t0 = time.perf_counter()
-    out = run_calibration(config, run_dir)
+    helpers = start_forward_helpers(config, run_dir, a.workers - 1)
+    try:
+        out = run_calibration(config, run_dir)
+    finally:
+        for h in helpers:
+            if h.poll() is None and not (run_dir / "forward" / "forward.npz").exists():
+                h.terminate()  # the main process failed or was stopped: do not leave helpers behind
+            if h.wait() != 0:
+                print(f"forward helper process {h.pid} exited with {h.returncode}", file=sys.stderr)
     summary = write_calibration_outputs(out, run_dir, time.perf_counter() - t0)
     print(json.dumps({"filters": {k: v["C10"] for k, v in summary["filters"].items()},
                       "truth": summary["truth"], "run": str(run_dir)}, indent=1))

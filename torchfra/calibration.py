@@ -10,6 +10,7 @@ a frame whose pressure exceeds the forward's is refused (rerun the forward with 
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import time
 from dataclasses import asdict, dataclass
@@ -23,6 +24,7 @@ from . import fem
 from .forward import ForwardConfig, lognormal_parameters
 from .geometry.actuator import ActuatorGeometry, build_actuator_model
 from .observe import ObservationError, ObservationOperator, frame_times, visible_faces
+from .assimilation.filters import PolynomialSlave
 from .recordings import Recording, RecordingError
 
 
@@ -165,8 +167,9 @@ class RestartForecaster:
     parameters, warm-started from its own previous equilibrium (the state-export variant of the
     paper §3.3). Counts FE solves (member x assimilation step) and Newton iterations."""
 
-    def __init__(self, solver: ActuatorSolver, lam: np.ndarray, N: int):
+    def __init__(self, solver: ActuatorSolver, lam: np.ndarray, N: int, frames=None):
         self.solver, self.lam = solver, lam
+        self.frames = np.arange(len(lam)) if frames is None else np.asarray(frames)
         pack = fem.newton._Packing(solver.model)
         self.x = torch.zeros(N, pack.size, dtype=torch.float64)
         self.lam_now = np.zeros(N)
@@ -190,11 +193,19 @@ class RestartForecaster:
         self.newton_iterations += int(sol.iterations.sum())
         failed = np.flatnonzero(sol.status != "converged")
         if failed.size:
-            raise RuntimeError(f"restart filter: members {failed.tolist()} did not converge at frame index {k} "
+            raise RuntimeError(f"restart filter: members {failed.tolist()} did not converge at frame {self.frames[k]} "
                                f"(C10 = {torch.exp(Q[failed, 0]).tolist()}); the run can be resumed after a fix")
         self.x, self.lam_now = sol.x_last, target
         Y = s.operator(sol.u[:, -1, : s.mesh.n_nodes])
         return Y.reshape(len(Q), -1)
+
+
+def recording_digest(rec: Recording) -> str:
+    """Fingerprint of a recording's content (checkpoints must not resume against other data)."""
+    h = hashlib.sha256()
+    for a in (rec.frames, rec.times, rec.pressure, rec.point_ids, rec.X, rec.Z):
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
 
 
 def config_dict(config: CalibrationConfig) -> dict:
@@ -219,12 +230,18 @@ def _load_recording(config: CalibrationConfig, run_dir: Path, progress: bool):
     if config.recording is not None:
         return read_recording(config.recording), None, None
     path, clean_path = run_dir / "recording.csv", run_dir / "recording_clean.npz"
+    made_by = {k: getattr(config, k) for k in ("truth_c10", "noise", "noise_seed", "points", "frames", "pressure",
+                                               "resolution")}
     if path.exists() and clean_path.exists():
+        saved = json.loads(str(np.load(clean_path)["made_by"]))
+        if saved != json.loads(json.dumps(made_by)):
+            raise RecordingError(f"{path} was made with other settings ({saved}); choose another --name, or "
+                                 "delete the run folder's recording files to make a new one")
         return read_recording(path), np.load(clean_path)["clean"], config.truth_c10
     times = frame_times(config.frames)
     rec, clean = synthetic_recording(config.truth_c10, config.resolution, config.points, config.noise,
                                      config.noise_seed, times, config.pressure * times, progress=progress)
-    np.savez(clean_path, clean=clean)
+    np.savez(clean_path, clean=clean, made_by=json.dumps(made_by))
     write_recording(path, rec)
     return read_recording(path), clean, config.truth_c10
 
@@ -236,12 +253,12 @@ def _restart(config, run_dir, rec, lam, Q0, Z, r, tracked, progress):
     idx = np.arange(config.restart_every - 1, rec.n_frames, config.restart_every)
     ckpt = run_dir / "restart_checkpoint.pt"
     solver = ActuatorSolver(config.resolution, rec, forward_config(config))
-    fc = RestartForecaster(solver, lam[idx], Q0.shape[0])
+    fc = RestartForecaster(solver, lam[idx], Q0.shape[0], rec.frames[idx])
     gen = torch.Generator().manual_seed(config.filter_seed + 100)
     result = None
     if ckpt.exists():
         saved = torch.load(ckpt, weights_only=False)
-        if saved["config"] == config_dict(config):
+        if saved["config"] == config_dict(config) and saved.get("recording") == recording_digest(rec):
             result = saved["result"]
             gen.set_state(saved["generator"])
             fc.load_state(saved["forecaster"])
@@ -249,7 +266,8 @@ def _restart(config, run_dir, rec, lam, Q0, Z, r, tracked, progress):
     def checkpoint(res: FilterResult, g: torch.Generator) -> None:
         res.fe_solves, res.newton_iterations = fc.fe_solves, fc.newton_iterations
         tmp = ckpt.with_suffix(".tmp")
-        torch.save({"config": config_dict(config), "result": res, "generator": g.get_state(),
+        torch.save({"config": config_dict(config), "recording": recording_digest(rec), "result": res,
+                    "generator": g.get_state(),
                     "forecaster": fc.state()}, tmp)
         tmp.replace(ckpt)
 
@@ -313,9 +331,42 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True) -
             fe = sweep(res.Q[k][:, 0].numpy())[:, k, :][:, tracked]  # (N, 2)
             err.append(np.sqrt(((res.Y_tracked[k].numpy() - fe) ** 2).mean(0)))
         out["filters"][name]["slave_error_tracked"] = np.asarray(err)  # (K, 2) RMS over members, mm
+    out["direct_fe_check"] = _direct_fe_check(config, run_dir, out, rec, lam, tracked, row)
     if clean is not None and config.coverage_seeds > 0:
         out["coverage"] = coverage_study(config, Q0, Yt, sweep, clean.reshape(K, -1), truth, mu, sigma)
     return out
+
+
+def _direct_fe_check(config, run_dir: Path, out: dict, rec: Recording, lam, tracked, row) -> dict:
+    """One FE solve at each hierarchical filter's final posterior mean of C10, observed at the last
+    frame, against that filter's forecast (its slave's map at the same C10) and the spline through
+    the FE sweep: checks both maps directly, not only through the sweep. Cached in the run folder."""
+    names = ("hierarchical", "hierarchical_nonlinear")
+    k_top = int(np.argmax(lam))  # the frame of highest pressure (a cycled trace ends unloaded)
+    q = np.array([float(out["filters"][n]["result"].Q[-1][:, 0].mean()) for n in names])
+    path = run_dir / "direct_fe_check.npz"
+    if path.exists() and np.allclose(np.load(path)["q"], q, rtol=0, atol=1e-12) and int(np.load(path)["k"]) == k_top:
+        fe = np.load(path)["fe"]
+    else:
+        solver = ActuatorSolver(config.resolution, rec, forward_config(config))
+        sol = fem.solve(solver.model, solver.params(np.exp(q)), [float(lam[k_top])], solver.options())
+        if not sol.converged.all():
+            return {"skipped": f"the direct FE solve did not converge (C10 = {np.exp(q).tolist()})"}
+        fe = solver.operator(sol.u[:, -1, : solver.mesh.n_nodes]).numpy()[:, row]  # (2, 2)
+        np.savez(path, q=q, fe=fe, k=k_top)
+    res = {}
+    for j, n in enumerate(names):
+        Qm = torch.full((1, 1), q[j], dtype=torch.float64)
+        # the slave's map at q without any member's own residual: the affine least-squares fit of
+        # Eq. 23 (= degree 1, R_q = 0) or the cubic of the nonlinear slave
+        Yfe = torch.as_tensor(out["Y_fe"].reshape(*out["Y_fe"].shape[:2], -1))
+        slave = PolynomialSlave(out["Q0"], Yfe, 1 if n == "hierarchical" else config.degree)
+        pred = slave.map(Qm, k_top)[0, tracked].numpy()
+        spline = out["sweep"](np.array([q[j]]))[0, k_top, tracked]
+        res[n] = {"C10": float(np.exp(q[j])), "fe_tracked_mm": fe[j].tolist(), "slave_map_tracked_mm": pred.tolist(),
+                  "spline_tracked_mm": spline.tolist(), "slave_minus_fe_mm": (pred - fe[j]).tolist(),
+                  "spline_minus_fe_mm": (spline - fe[j]).tolist(), "frame": int(rec.frames[k_top])}
+    return res
 
 
 def coverage_study(config, Q0, Yt, sweep, clean, truth, mu, sigma) -> dict:

@@ -116,7 +116,7 @@ def from_table(t: dict[str, np.ndarray], source: str = "<memory>", max_displacem
         v = t[c]
         bad = np.flatnonzero(~np.isfinite(v) | (v != np.round(v)))
         if bad.size:
-            raise RecordingError(f"{source}: row {bad[0] + 1} has {c} = {v[bad[0]]!r}; {c} must be an integer")
+            raise RecordingError(f"{source}: data row {bad[0] + 1} has {c} = {v[bad[0]]!r}; {c} must be an integer")
     for c in ("X", "Y", "Z"):
         bad = np.flatnonzero(~np.isfinite(t[c]))
         if bad.size:
@@ -129,8 +129,9 @@ def from_table(t: dict[str, np.ndarray], source: str = "<memory>", max_displacem
     key = fi * P + pi
     uniq, counts = np.unique(key, return_counts=True)
     if np.any(counts > 1):
-        k = int(uniq[np.argmax(counts > 1)])
-        raise RecordingError(f"{source}: point {pids[k % P]} appears {counts.max()} times in frame "
+        j = int(np.argmax(counts > 1))
+        k = int(uniq[j])
+        raise RecordingError(f"{source}: point {pids[k % P]} appears {counts[j]} times in frame "
                              f"{frames[k // P]}; each (frame, point_id) must appear once")
     times, pressure = np.full(K, np.nan), np.full(K, np.nan)
     for name, out in (("time", times), ("pressure", pressure)):

@@ -71,8 +71,9 @@ def analysis(Q: torch.Tensor, Y: torch.Tensor, z: torch.Tensor, r: torch.Tensor,
     ``E`` None updates without perturbations (the mean update of a square-root filter, used in tests).
     ``mask`` (m,) True where observed; by default the finite entries of z.
     """
-    if mask is None:
-        mask = torch.isfinite(z)
+    if z.ndim != 1 or Y.ndim != 2 or Y.shape[1] != z.shape[0] or r.shape != z.shape:
+        raise ValueError(f"Y must be (N, m), z and r (m,), got {tuple(Y.shape)}, {tuple(z.shape)}, {tuple(r.shape)}")
+    mask = torch.isfinite(z) if mask is None else mask & torch.isfinite(z)
     z, r, Y = z[mask], r[mask], Y[:, mask]
     E = None if E is None else E[:, mask]
     _check(Q, Y, z, r, E)

@@ -79,9 +79,17 @@ class GridPosterior:
         w = w / w.sum()
         mean = float(w @ x)
         std = float(math.sqrt(max(w @ (x - mean) ** 2, 0.0)))
-        cdf = np.cumsum(w)
+        # CDF at the nodes by the trapezoid rule (cumsum of the node weights would be half a cell off)
+        cdf = np.concatenate([[0.0], np.cumsum(0.5 * (p[:-1] + p[1:]) * np.diff(self.q))])
+        cdf /= cdf[-1]
         p10, p90 = np.interp([0.1, 0.9], cdf, x)
         return {"mean": mean, "std": std, "p10": float(p10), "p90": float(p90)}
+
+    def edge_mass(self, step: int = -1, cells: int = 10) -> float:
+        """Posterior probability in the ``cells`` grid cells at either end: near 0 when the grid (the
+        sweep's range) holds the posterior."""
+        w = _trapezoid_weights(self.q) * np.exp(self.log_post[step])
+        return float((w[:cells].sum() + w[-cells:].sum()) / w.sum())
 
     def density(self, step: int = -1) -> tuple[np.ndarray, np.ndarray]:
         """(x, pdf of the physical parameter x = exp(q))."""

@@ -75,6 +75,8 @@ class PolynomialSlave:
             raise ValueError(f"a degree-{degree} polynomial in {d} parameters has {len(self.terms)} coefficients, "
                              f"too many for {N} members; lower the degree")
         self.center, self.scale = Q0.mean(0), Q0.std(0)
+        if not torch.all(self.scale > 0):
+            raise ValueError("every parameter needs spread in the prior ensemble to fit the slave's map")
         self.Y_fe = Y_fe
         Phi0 = self.features(Q0)
         K = Y_fe.shape[1]
