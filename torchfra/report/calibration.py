@@ -185,16 +185,24 @@ def pdf_figure(out: dict, mu: float, sigma: float) -> Figure:
     xz = np.linspace(lo, hi, 600)
     for ax in (ax_all, ax_zoom):
         ax.plot(xe, pe, color="k", label=LABELS["exact"])
+        if "exact_restart_frames" in out:
+            xr, pr = out["exact_restart_frames"].density()
+            ax.plot(xr, pr, "k:", label="exact, on the restart filter's frames")
         for name, f in out["filters"].items():
             if name == "exact":
                 continue
             c = torch.exp(f["result"].Q[-1][:, 0]).numpy()
-            ax.plot(xz, gaussian_kde(c)(xz), color=COLORS[name], ls="--", label=LABELS[name] + " (KDE)")
+            xs = x if ax is ax_all else xz
+            note = f", {len(f['frames'])} frames" if len(f["frames"]) != len(out["recording"].times) else ""
+            ax.plot(xs, gaussian_kde(c)(xs), color=COLORS[name], ls="--", label=f"{LABELS[name]} (KDE{note})")
         if out["truth"] is not None:
             ax.axvline(out["truth"], color="k", lw=1)
         ax.set(xlabel="C10 (MPa)", ylabel="density")
         ax.grid(True, alpha=0.3)
     ax_all.set_xlim(x[0], x[-1])
+    ax_all.set_yscale("log")  # the prior is ~100x lower than the posteriors
+    ax_all.set_ylim(prior_pdf.max() * 1e-2, pe.max() * 3)
+    ax_all.set_title("prior and posteriors (log scale)")
     ax_zoom.set_xlim(lo, hi)
     ax_zoom.set_title("zoom on the posteriors")
     ax_all.legend(fontsize="x-small")
