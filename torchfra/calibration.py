@@ -241,8 +241,9 @@ def _load_recording(config: CalibrationConfig, run_dir: Path, progress: bool):
     times = frame_times(config.frames)
     rec, clean = synthetic_recording(config.truth_c10, config.resolution, config.points, config.noise,
                                      config.noise_seed, times, config.pressure * times, progress=progress)
-    np.savez(clean_path, clean=clean, made_by=json.dumps(made_by))
     write_recording(path, rec)
+    np.savez(clean_path.with_suffix(".tmp.npz"), clean=clean, made_by=json.dumps(made_by))
+    clean_path.with_suffix(".tmp.npz").replace(clean_path)  # written last: marks the pair complete
     return read_recording(path), clean, config.truth_c10
 
 

@@ -202,20 +202,25 @@ def to_table(rec: Recording) -> dict[str, np.ndarray]:
 
 
 def write_recording(path, rec: Recording) -> Path:
-    """Write ``rec`` as CSV or NPZ (by suffix); NaN (not observed) is written as an empty CSV field."""
+    """Write ``rec`` as CSV or NPZ (by suffix); NaN (not observed) is written as an empty CSV field.
+    The file appears whole or not at all (written aside, then renamed): a killed run leaves no
+    half-written recording behind."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     table = to_table(rec)
+    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
     if path.suffix.lower() == ".npz":
-        np.savez(path, **table)
+        np.savez(tmp, **table)
+        tmp.replace(path)
         return path
     if path.suffix.lower() != ".csv":
         raise RecordingError(f"{path}: unknown recording format {path.suffix!r}; use .csv or .npz")
-    with open(path, "w", newline="") as f:
+    with open(tmp, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(COLUMNS)
         ints = {"frame", "point_id"}
         for i in range(len(table["frame"])):
             w.writerow([int(table[c][i]) if c in ints else ("" if not np.isfinite(table[c][i]) else repr(float(table[c][i])))
                         for c in COLUMNS])
+    tmp.replace(path)
     return path
