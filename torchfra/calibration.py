@@ -259,7 +259,8 @@ def _restart(config, run_dir, rec, lam, Q0, Z, r, tracked, progress):
     result = None
     if ckpt.exists():
         saved = torch.load(ckpt, weights_only=False)
-        if saved["config"] == config_dict(config) and saved.get("recording") == recording_digest(rec):
+        if (saved["config"] == config_dict(config) and saved.get("recording") == recording_digest(rec)
+                and torch.equal(saved["result"].Q[0], Q0)):
             result = saved["result"]
             gen.set_state(saved["generator"])
             fc.load_state(saved["forecaster"])
@@ -319,7 +320,10 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True) -
     out["sweep_loo_error"] = sweep.leave_one_out_error()
     out["sweep"] = sweep
     if config.restart:
-        res, idx = _restart(config, run_dir, rec, lam, Q0, Z, r, tracked, progress)
+        # The restart filter solves FE from the unloaded state itself, so its prior is every draw,
+        # including forward members that did not converge (the forward's path, not the draw, failed).
+        Q0_all = torch.log(fwd["params"]["C10"])[:, None]
+        res, idx = _restart(config, run_dir, rec, lam, Q0_all, Z, r, tracked, progress)
         out["filters"]["restart"] = {"result": res, "frames": idx}
         out["exact_restart_frames"] = grid_posterior(sweep, rec.Z.reshape(K, -1), config.noise ** 2, mu, sigma,
                                                      config.grid, frames=idx)

@@ -77,7 +77,8 @@ def write_calibration_outputs(out: dict, run_dir, wall_s: float) -> dict:
     fc = forward_config(cfg)
     mu, sigma = lognormal_parameters(fc.c10_mean, fc.c10_std)
     summary = {
-        "members": int(out["Q0"].shape[0]),
+        "members": int(cfg.members),
+        "members_in_hierarchical_filters": int(out["Q0"].shape[0]),
         "frames": int(rec.n_frames),
         "observation_points": int(rec.n_points),
         "observations": int(np.isfinite(rec.Z).sum()),
@@ -88,6 +89,9 @@ def write_calibration_outputs(out: dict, run_dir, wall_s: float) -> dict:
         "forward": {"resolution": cfg.resolution, "dofs": int(fwd["model"].n_red),
                     "newton_iterations_total": int(fwd["iterations"].sum()), "member_solves": int(len(fwd["status"])),
                     "solver_time_s": float(sum(fwd["timings"].values())),
+                    "members_failed": [{"member": int(m), "C10": float(fwd["params"]["C10"][m]),
+                                        "load_reached": float(fwd["load_reached"][m])}
+                                       for m in np.flatnonzero(fwd["status"] != "converged")],
                     "members_converged": int((fwd["status"] == "converged").sum())},
         "exact_interpolation_loo_error_mm": float(out["sweep_loo_error"]),
         "noise_std_mm": cfg.noise,
