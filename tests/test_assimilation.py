@@ -199,3 +199,30 @@ def test_grid_posterior_masks_and_frame_subsets():
     sd = np.sqrt(np.trapezoid(w * (sub.q - m) ** 2, sub.q))
     assert np.log(st["p10"]) == pytest.approx(m - 1.2815516 * sd, abs=2e-4 * sd)
     assert np.log(st["p90"]) == pytest.approx(m + 1.2815516 * sd, abs=2e-4 * sd)
+
+
+def test_slave_degree_chosen_by_leave_one_out_error():
+    """'auto' picks the degree with the smallest closed-form leave-one-out error (checked against
+    explicit refits): 2 for a quadratic map under noise (higher degrees only fit the noise), and a
+    higher degree than 3 for 10 exp(-q), whose Taylor series does not stop."""
+    from torchfra.assimilation.filters import select_degree
+
+    g = torch.Generator().manual_seed(4)
+    N = 100
+    Q0 = 0.18 * torch.randn(N, 1, generator=g)
+    quad = (1 + Q0 + 0.5 * Q0 ** 2)[:, :, None] + 0.01 * torch.randn(N, 4, 50, generator=g)
+    degree, loo = select_degree(Q0, quad)
+    assert degree == 2 and loo[1] > 2 * loo[2]
+    # closed form = refitting without each member (degree 2, first 5 members)
+    errs = []
+    for i in range(5):
+        keep = torch.arange(N) != i
+        s = PolynomialSlave(Q0[keep], quad[keep], 2)
+        errs.append(quad[i].reshape(-1) - s.features(Q0[i:i + 1])[0] @ s.W.reshape(3, -1))
+    s = PolynomialSlave(Q0, quad, 2)
+    Phi = s.features(Q0)
+    h = torch.diagonal(Phi @ torch.linalg.pinv(Phi))
+    closed = (quad.reshape(N, -1) - s._g0.reshape(N, -1)) / (1 - h)[:, None]
+    assert torch.allclose(torch.stack(errs), closed[:5], atol=1e-12)
+    curved = 10 * torch.exp(-Q0)[:, :, None].expand(-1, 3, 4)
+    assert PolynomialSlave(Q0, curved, "auto").degree > 3

@@ -43,7 +43,7 @@ class CalibrationConfig:
     points: str = "nodes"  # synthetic recordings: "nodes" or a DIC grid spacing in mm, e.g. "2.0"
     frames: int = 100
     filter_seed: int = 2
-    degree: int = 3
+    degree: int | str = "auto"  # polynomial slave: a degree, or "auto" (smallest leave-one-out error)
     restart: bool = True
     restart_every: int = 10
     coverage_seeds: int = 20
@@ -247,6 +247,10 @@ def _load_recording(config: CalibrationConfig, run_dir: Path, progress: bool):
     return read_recording(path), clean, config.truth_c10
 
 
+RESTART_KEYS = ("members", "resolution", "seed", "recording", "truth_c10", "noise", "noise_seed", "points", "frames",
+                "filter_seed", "restart_every", "pressure", "load_steps")  # what shapes the restart filter
+
+
 def _restart(config, run_dir, rec, lam, Q0, Z, r, tracked, progress):
     """Restart filter on every ``restart_every``-th frame, checkpointed after each step."""
     from .assimilation import FilterResult, sequential_filter
@@ -259,7 +263,8 @@ def _restart(config, run_dir, rec, lam, Q0, Z, r, tracked, progress):
     result = None
     if ckpt.exists():
         saved = torch.load(ckpt, weights_only=False)
-        if (saved["config"] == config_dict(config) and saved.get("recording") == recording_digest(rec)
+        now = config_dict(config)
+        if (all(saved["config"].get(k) == now[k] for k in RESTART_KEYS) and saved.get("recording") == recording_digest(rec)
                 and torch.equal(saved["result"].Q[0], Q0)):
             result = saved["result"]
             gen.set_state(saved["generator"])
@@ -313,6 +318,8 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True) -
         res, s = hierarchical_filter(Q0, Yt, Z, r, torch.Generator().manual_seed(config.filter_seed),
                                      slave=slave, degree=config.degree, tracked=tracked)
         out["filters"][name] = {"result": res, "frames": np.arange(K)}
+        if slave == "polynomial":
+            out["slave_degree"], out["slave_loo_rms_mm"] = s.degree, s.loo_rms
     t0 = time.perf_counter()
     sweep = SweepMap(Q0[:, 0].numpy(), Y_fe.reshape(N, K, -1))
     exact = grid_posterior(sweep, rec.Z.reshape(K, -1), config.noise ** 2, mu, sigma, config.grid)
@@ -338,7 +345,8 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True) -
         out["filters"][name]["slave_error_tracked"] = np.asarray(err)  # (K, 2) RMS over members, mm
     out["direct_fe_check"] = _direct_fe_check(config, run_dir, out, rec, lam, tracked, row)
     if clean is not None and config.coverage_seeds > 0:
-        out["coverage"] = coverage_study(config, Q0, Yt, sweep, clean.reshape(K, -1), truth, mu, sigma)
+        out["coverage"] = coverage_study(config, Q0, Yt, sweep, clean.reshape(K, -1), truth, mu, sigma,
+                                         out["slave_degree"])
     return out
 
 
@@ -363,9 +371,9 @@ def _direct_fe_check(config, run_dir: Path, out: dict, rec: Recording, lam, trac
     for j, n in enumerate(names):
         Qm = torch.full((1, 1), q[j], dtype=torch.float64)
         # the slave's map at q without any member's own residual: the affine least-squares fit of
-        # Eq. 23 (= degree 1, R_q = 0) or the cubic of the nonlinear slave
+        # Eq. 23 (= degree 1, R_q = 0) or the polynomial of the nonlinear slave
         Yfe = torch.as_tensor(out["Y_fe"].reshape(*out["Y_fe"].shape[:2], -1))
-        slave = PolynomialSlave(out["Q0"], Yfe, 1 if n == "hierarchical" else config.degree)
+        slave = PolynomialSlave(out["Q0"], Yfe, 1 if n == "hierarchical" else out["slave_degree"])
         pred = slave.map(Qm, k_top)[0, tracked].numpy()
         spline = out["sweep"](np.array([q[j]]))[0, k_top, tracked]
         res[n] = {"C10": float(np.exp(q[j])), "fe_tracked_mm": fe[j].tolist(), "slave_map_tracked_mm": pred.tolist(),
@@ -374,7 +382,7 @@ def _direct_fe_check(config, run_dir: Path, out: dict, rec: Recording, lam, trac
     return res
 
 
-def coverage_study(config, Q0, Yt, sweep, clean, truth, mu, sigma) -> dict:
+def coverage_study(config, Q0, Yt, sweep, clean, truth, mu, sigma, out_degree) -> dict:
     """Re-draw the recording's noise ``coverage_seeds`` times (no FE solve) and count how often each
     filter's 10-90 % interval holds the truth (expected 80 %; binomial std 9 % at 20 seeds)."""
     from .assimilation import grid_posterior, hierarchical_filter
@@ -387,7 +395,7 @@ def coverage_study(config, Q0, Yt, sweep, clean, truth, mu, sigma) -> dict:
         Zt = torch.as_tensor(Zs)
         for name, slave in (("hierarchical", "linear"), ("hierarchical_nonlinear", "polynomial")):
             res, _ = hierarchical_filter(Q0, Yt, Zt, r, torch.Generator().manual_seed(config.filter_seed + s),
-                                         slave=slave, degree=config.degree)
+                                         slave=slave, degree=out_degree)
             rows[name].append(_stats(torch.exp(res.Q[-1])))
         rows["exact"].append(grid_posterior(sweep, Zs, config.noise ** 2, mu, sigma, config.grid).stats())
     out = {}

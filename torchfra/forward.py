@@ -137,6 +137,8 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
         stop = min(start + config.chunk, config.members)
         path = chunks_dir / f"chunk_{start:05d}.npz"
         if path.exists() or not _claim(path.with_suffix(".lock")):
+            if bar is not None and path.exists():
+                bar.update(stop - start)
             continue  # done, or another worker on the same run folder is solving it
         chunk_params = {k: v[start:stop] for k, v in params.items()}
         sol = fem.solve(model, chunk_params, load, fem.NewtonOptions(**config.newton))

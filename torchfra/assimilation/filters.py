@@ -53,6 +53,24 @@ class LinearSlave:
         return Yk + shift @ B.T
 
 
+def select_degree(Q0: torch.Tensor, Y_fe: torch.Tensor, max_degree: int = 8) -> tuple[int, dict[int, float]]:
+    """The polynomial degree with the smallest leave-one-out RMS error of the map Q0 -> Y_fe, over
+    degree 1 and the higher degrees (up to max_degree) that leave at least 10 members per
+    coefficient. Leave-one-out residuals
+    of least squares come in closed form, e_i / (1 - h_ii) with h the hat matrix: no refits."""
+    N, d = Q0.shape
+    loo: dict[int, float] = {}
+    for p in range(1, max_degree + 1):
+        if p > 1 and 10 * len(_monomials(d, p)) > N:
+            break
+        s = PolynomialSlave(Q0, Y_fe, p)
+        Phi = s.features(Q0)
+        h = torch.diagonal(Phi @ torch.linalg.pinv(Phi))
+        e = Y_fe.reshape(N, -1) - s._g0.reshape(N, -1)
+        loo[p] = float(torch.sqrt(((e / (1 - h)[:, None]) ** 2).mean()))
+    return min(loo, key=loo.get), loo
+
+
 def _monomials(d: int, degree: int) -> list[tuple[int, ...]]:
     return [c for p in range(degree + 1) for c in itertools.combinations_with_replacement(range(d), p)]
 
@@ -68,9 +86,13 @@ class PolynomialSlave:
 
     name = "polynomial"
 
-    def __init__(self, Q0: torch.Tensor, Y_fe: torch.Tensor, degree: int = 3):
+    def __init__(self, Q0: torch.Tensor, Y_fe: torch.Tensor, degree: int | str = 3, max_degree: int = 8):
         N, d = Q0.shape
-        self.terms = _monomials(d, degree)
+        self.loo_rms: dict[int, float] = {}
+        if degree == "auto":
+            degree, self.loo_rms = select_degree(Q0, Y_fe, max_degree)
+        self.degree = int(degree)
+        self.terms = _monomials(d, self.degree)
         if len(self.terms) >= N:
             raise ValueError(f"a degree-{degree} polynomial in {d} parameters has {len(self.terms)} coefficients, "
                              f"too many for {N} members; lower the degree")
@@ -169,7 +191,7 @@ def sequential_filter(
     return res
 
 
-def hierarchical_filter(Q0, Y_fe, Z, r, generator, slave: str = "linear", degree: int = 3, R_q=None,
+def hierarchical_filter(Q0, Y_fe, Z, r, generator, slave: str = "linear", degree: int | str = 3, R_q=None,
                         tracked=None) -> tuple[FilterResult, object]:
     """The paper's filter (``slave="linear"``, Eqs. 21-23) or its nonlinear-slave variant
     (``slave="polynomial"``). Y_fe (N, K, m) from the forward ensemble of Q0; no FE solve."""

@@ -101,6 +101,7 @@ def write_calibration_outputs(out: dict, run_dir, wall_s: float) -> dict:
         "threads": torch.get_num_threads(),
     }
     summary["direct_fe_check"] = out["direct_fe_check"]
+    summary["polynomial_slave"] = {"degree": out["slave_degree"], "leave_one_out_rms_mm": out["slave_loo_rms_mm"]}
     if "coverage" in out:
         summary["coverage"] = out["coverage"]
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=1))
@@ -112,7 +113,7 @@ def write_calibration_outputs(out: dict, run_dir, wall_s: float) -> dict:
     metrics = {f"final/{n}/C10_mean": r["C10"]["mean"] for n, r in rows.items()}
     metrics.update({f"final/{n}/log_evidence": r["log_evidence"] for n, r in rows.items()})
     log_hparams(writer, {"members": summary["members"], "frames": summary["frames"], "resolution": cfg.resolution,
-                         "noise": cfg.noise, "degree": cfg.degree, "restart_every": cfg.restart_every,
+                         "noise": cfg.noise, "degree": out["slave_degree"], "restart_every": cfg.restart_every,
                          "recording": str(cfg.recording)}, metrics)
     writer.close()
     return summary
