@@ -197,7 +197,7 @@ def pdf_figure(out: dict, mu: float, sigma: float) -> Figure:
             if name == "exact":
                 continue
             c = torch.exp(f["result"].Q[-1][:, 0]).numpy()
-            xs = x if ax is ax_all else xz
+            xs = np.union1d(x, xz) if ax is ax_all else xz  # resolve the narrow posteriors on the wide axis
             note = f", {len(f['frames'])} frames" if len(f["frames"]) != len(out["recording"].times) else ""
             ax.plot(xs, gaussian_kde(c)(xs), color=COLORS[name], ls="--", label=f"{LABELS[name]} (KDE{note})")
         if out["truth"] is not None:
