@@ -5,7 +5,7 @@ Eqs. 21-23), its nonlinear-slave variant, the restart EnKF and the exact grid po
     python scripts/calibrate.py --recording my_dic.csv --noise 0.5 --name bench_test
 
 writes runs/<name>/: summary.json, bands.png, pdfs.png, TensorBoard events; the forward ensemble is
-cached in runs/<name>/forward/ and the restart filter checkpoints after every step, so a killed
+cached in runs/forward_cache/<settings>/ (shared by runs with the same prior, mesh and load) and the restart filter checkpoints after every step, so a killed
 run resumes without redoing finished FE work.
 """
 import argparse
@@ -21,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-from torchfra.calibration import SEED, CalibrationConfig, forward_config, run_calibration  # noqa: E402
+from torchfra.calibration import SEED, CalibrationConfig, forward_config, forward_dir, run_calibration  # noqa: E402
 from torchfra.report.calibration import write_calibration_outputs  # noqa: E402
 
 CONFIGS = {"seed": SEED}
@@ -30,15 +30,15 @@ CONFIGS = {"seed": SEED}
 def start_forward_helpers(config: CalibrationConfig, run_dir: Path, n: int) -> list:
     """Extra processes that solve chunks of the same forward ensemble (they share the run folder
     through chunk locks, see torchfra.forward); none when the ensemble is already on disk."""
-    fwd = forward_config(config)
-    done = run_dir / "forward" / "members" / f"chunk_{(fwd.members - 1) // fwd.chunk * fwd.chunk:05d}.npz"
-    if n <= 0 or (run_dir / "forward" / "forward.npz").exists() or done.exists():
+    fwd, where = forward_config(config), forward_dir(config, run_dir.parent)
+    done = where / "members" / f"chunk_{(fwd.members - 1) // fwd.chunk * fwd.chunk:05d}.npz"
+    if n <= 0 or (where / "forward.npz").exists() or done.exists():
         return []
-    (run_dir / "forward").mkdir(parents=True, exist_ok=True)
+    where.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, str(Path(__file__).with_name("forward_uq.py")), "--members", str(fwd.members),
            "--mesh", str(fwd.resolution), "--seed", str(fwd.seed), "--pressure", repr(fwd.pressure),
            "--load-steps", str(fwd.load_steps), "--chunk", str(fwd.chunk), "--threads", str(fwd.threads),
-           "--runs-dir", str(run_dir), "--out", "forward", "--quiet"]
+           "--runs-dir", str(where.parent), "--out", where.name, "--quiet"]
     env = dict(os.environ, MKL_NUM_THREADS=str(fwd.threads), OMP_NUM_THREADS=str(fwd.threads))
     return [subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL) for _ in range(n)]
 
@@ -74,7 +74,7 @@ def main(argv=None) -> dict:
         out = run_calibration(config, run_dir)
     finally:
         for h in helpers:
-            if h.poll() is None and not (run_dir / "forward" / "forward.npz").exists():
+            if h.poll() is None and not (forward_dir(config, run_dir.parent) / "forward.npz").exists():
                 h.terminate()  # the main process failed or was stopped: do not leave helpers behind
             if h.wait() != 0:
                 print(f"forward helper process {h.pid} exited with {h.returncode}", file=sys.stderr)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from torchfra import calibration
-from torchfra.calibration import CalibrationConfig, run_calibration
+from torchfra.calibration import CalibrationConfig, forward_dir, run_calibration
 from torchfra.report.calibration import write_calibration_outputs
 
 CONFIG = CalibrationConfig(members=4, frames=6, pressure=0.004, load_steps=2, noise=0.05, restart_every=3,
@@ -29,7 +29,7 @@ def test_calibration_end_to_end_and_resume(tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         run_calibration(CONFIG, run_dir, progress=False)
     assert (run_dir / "restart_checkpoint.pt").exists()
-    stamps = {p: p.stat().st_mtime_ns for p in list((run_dir / "forward" / "members").glob("*.npz"))
+    stamps = {p: p.stat().st_mtime_ns for p in list((forward_dir(CONFIG, tmp_path) / "members").glob("*.npz"))
               + [run_dir / "recording.csv"]}
 
     calls["n"] = -100  # no more interruptions; count the FE forecasts of the resumed run

@@ -55,6 +55,13 @@ class CalibrationConfig:
 SEED = CalibrationConfig()  # --config seed: the paper's numerical experiment (§4.1)
 
 
+def forward_dir(config: CalibrationConfig, runs_dir) -> Path:
+    """Where the forward ensemble of ``config`` is cached: ``<runs>/forward_cache/<settings>/``, shared by
+    every calibration run with the same prior, mesh and load (a new recording needs no new FE work)."""
+    f = forward_config(config)
+    return Path(runs_dir) / "forward_cache" / f"mesh{f.resolution}_N{f.members}_seed{f.seed}_P{f.pressure:g}_steps{f.load_steps}"
+
+
 def forward_config(config: CalibrationConfig) -> ForwardConfig:
     return ForwardConfig(members=config.members, resolution=config.resolution, seed=config.seed,
                          pressure=config.pressure, load_steps=config.load_steps)
@@ -284,15 +291,16 @@ def _restart(config, run_dir, rec, lam, Q0, Z, r, tracked, progress):
     return res, idx
 
 
-def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True) -> dict:
-    """Run every filter on the recording; return everything the report needs (see scripts/calibrate.py)."""
+def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, runs_dir=None) -> dict:
+    """Run every filter on the recording; return everything the report needs (see scripts/calibrate.py).
+    The forward ensemble is cached under ``runs_dir`` (default: the run folder's parent)."""
     from .assimilation import SweepMap, grid_posterior, hierarchical_filter
     from .forward import run_forward
 
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     fwd_cfg = forward_config(config)
-    fwd = run_forward(fwd_cfg, run_dir / "forward", progress=progress)
+    fwd = run_forward(fwd_cfg, forward_dir(config, run_dir.parent if runs_dir is None else runs_dir), progress=progress)
     ok = fwd["status"] == "converged"
     if not ok.all():  # flagged, never silently replaced: the filters run on the converged members
         print(f"forward members {np.flatnonzero(~ok).tolist()} did not converge; they are left out of the filters")
