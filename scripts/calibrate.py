@@ -11,6 +11,7 @@ run resumes without redoing finished FE work.
 import argparse
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -69,6 +70,7 @@ def main(argv=None) -> dict:
         config = replace(config, restart=False)
     run_dir = Path(a.runs_dir) / (a.name or a.config)
     t0 = time.perf_counter()
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # run the cleanup below when killed politely
     helpers = start_forward_helpers(config, run_dir, a.workers - 1)
     try:
         out = run_calibration(config, run_dir)
