@@ -60,7 +60,7 @@ def comparisons(out: dict, rows: dict) -> dict:
         d = {"exact_mean_same_frames": ref["mean"], "exact_std_same_frames": ref["std"],
              "distance_from_exact_mean_in_exact_stds": (c["mean"] - ref["mean"]) / ref["std"],
              "spread_ratio_to_exact": c["std"] / ref["std"],
-             "exact_log_evidence_same_frames": float(ev)}
+             "exact_log_evidence_same_frames": float(ev), "exact_same_frames": ref}
         if out["truth"] is not None:
             d["error_from_truth_percent"] = 100 * (c["mean"] - out["truth"]) / out["truth"]
         comp[name] = d
