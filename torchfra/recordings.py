@@ -59,14 +59,6 @@ class Recording:
     def n_points(self) -> int:
         return len(self.point_ids)
 
-    def select_frames(self, keep) -> "Recording":
-        keep = np.asarray(keep)
-        return Recording(self.frames[keep], self.times[keep], self.pressure[keep], self.point_ids, self.X,
-                         self.Z[keep], self.source)
-
-    def with_Z(self, Z: np.ndarray) -> "Recording":
-        return Recording(self.frames, self.times, self.pressure, self.point_ids, self.X, np.asarray(Z), self.source)
-
 
 def _table_from_csv(path: Path) -> dict[str, np.ndarray]:
     with open(path, newline="") as f:

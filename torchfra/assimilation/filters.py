@@ -144,9 +144,6 @@ class FilterResult:
     def steps(self) -> int:
         return len(self.info)
 
-    def stack(self) -> torch.Tensor:
-        return torch.stack(self.Q)
-
 
 def sequential_filter(
     Q0: torch.Tensor,
