@@ -23,6 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import torch  # noqa: E402
 
 from torchfra.calibration import SEED, CalibrationConfig, forward_config, forward_dir, run_calibration  # noqa: E402
+from torchfra.recordings import read_recording  # noqa: E402
 from torchfra.report.calibration import write_calibration_outputs  # noqa: E402
 
 CONFIGS = {"seed": SEED}
@@ -70,6 +71,8 @@ def main(argv=None) -> dict:
         config = replace(config, restart=False)
     run_dir = Path(a.runs_dir) / (a.name or a.config)
     t0 = time.perf_counter()
+    if config.recording is not None:
+        read_recording(config.recording)  # refuse a bad file before starting any FE work
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # run the cleanup below when killed politely
     helpers = start_forward_helpers(config, run_dir, a.workers - 1)
     try:

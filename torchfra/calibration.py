@@ -300,11 +300,14 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, r
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     fwd_cfg = forward_config(config)
+    # the recording first: a bad file is refused before any FE work on the forward ensemble
+    rec, clean, truth = _load_recording(config, run_dir, progress)
+    load_factors(rec, fwd_cfg.pressure)
+    recording_operator(ActuatorSolver(config.resolution, fwd=fwd_cfg).mesh, rec)
     fwd = run_forward(fwd_cfg, forward_dir(config, run_dir.parent if runs_dir is None else runs_dir), progress=progress)
     ok = fwd["status"] == "converged"
     if not ok.all():  # flagged, never silently replaced: the filters run on the converged members
         print(f"forward members {np.flatnonzero(~ok).tolist()} did not converge; they are left out of the filters")
-    rec, clean, truth = _load_recording(config, run_dir, progress)
     mesh = fwd["model"].mesh
     rec_op = recording_operator(mesh, rec)
     W = point_map(rec_op, fwd["operator"])
