@@ -345,6 +345,7 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, r
         out["filters"]["restart"] = {"result": res, "frames": idx}
         out["exact_restart_frames"] = grid_posterior(sweep, rec.Z.reshape(K, -1), config.noise ** 2, mu, sigma,
                                                      config.grid, frames=idx)
+        out["restart_spline_check"] = restart_spline_check(config, res, idx, sweep, Q0_all, Z, r, tracked)
     # How far each hierarchical slave's forecast is from the FE map (spline through the FE sweep) at
     # the ensemble it forecast for: the slave's linearization error along the way.
     for name in ("hierarchical", "hierarchical_nonlinear"):
@@ -356,8 +357,9 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, r
         out["filters"][name]["slave_error_tracked"] = np.asarray(err)  # (K, 2) RMS over members, mm
     out["direct_fe_check"] = _direct_fe_check(config, run_dir, out, rec, lam, tracked, row)
     if clean is not None and config.coverage_seeds > 0:
+        restart = (torch.log(fwd["params"]["C10"])[:, None], out["filters"]["restart"]["frames"]) if config.restart else None
         out["coverage"] = coverage_study(config, Q0, Yt, sweep, clean.reshape(K, -1), truth, mu, sigma,
-                                         out["slave_degree"])
+                                         out["slave_degree"], restart)
     return out
 
 
@@ -393,13 +395,38 @@ def _direct_fe_check(config, run_dir: Path, out: dict, rec: Recording, lam, trac
     return res
 
 
-def coverage_study(config, Q0, Yt, sweep, clean, truth, mu, sigma, out_degree) -> dict:
+def restart_spline_check(config, res, idx, sweep, Q0, Z, r, tracked) -> dict:
+    """How well the spline through the FE sweep stands in for the restart filter's FE solves: its
+    prediction at every ensemble the FE restart filter forecast for (the tracked entries, all
+    members, all steps) against the FE forecasts, and the same filter (same prior, same generator
+    seed) rerun with the spline in place of the FE solves against the FE run's posterior."""
+    from .assimilation import sequential_filter
+
+    err = max(float(np.abs(sweep(res.Q[k][:, 0].numpy())[:, idx[k]][:, tracked] - res.Y_tracked[k].numpy()).max())
+              for k in range(res.steps))
+    twin = sequential_filter(Q0, sweep.forecaster(idx), Z[idx], r, torch.Generator().manual_seed(config.filter_seed + 100))
+    fe, spl = _stats(torch.exp(res.Q[-1])), _stats(torch.exp(twin.Q[-1]))
+    return {"max_forecast_error_tracked_mm": err, "steps": res.steps,
+            "spline_restart_C10": spl, "fe_restart_C10": fe,
+            "mean_difference_in_fe_stds": (spl["mean"] - fe["mean"]) / fe["std"],
+            "std_ratio": spl["std"] / fe["std"],
+            "log_evidence_difference": twin.log_evidence - res.log_evidence}
+
+
+def coverage_study(config, Q0, Yt, sweep, clean, truth, mu, sigma, out_degree, restart=None) -> dict:
     """Re-draw the recording's noise ``coverage_seeds`` times (no FE solve) and count how often each
-    filter's 10-90 % interval holds the truth (expected 80 %; binomial std 9 % at 20 seeds)."""
-    from .assimilation import grid_posterior, hierarchical_filter
+    filter's 10-90 % interval holds the truth (expected 80 %; binomial std 9 % at 20 seeds).
+
+    ``restart = (Q0_all, frames)`` adds the restart filter on those frames, its FE solves replaced by
+    the spline through the FE sweep (checked against the FE restart run by
+    :func:`restart_spline_check`), and the exact posterior on the same frames."""
+    from .assimilation import grid_posterior, hierarchical_filter, sequential_filter
 
     r = torch.full((clean.shape[1],), config.noise ** 2, dtype=torch.float64)
-    rows = {k: [] for k in ("hierarchical", "hierarchical_nonlinear", "exact")}
+    names = ["hierarchical", "hierarchical_nonlinear", "exact"]
+    if restart is not None:
+        names += ["restart", "exact_restart_frames"]
+    rows = {k: [] for k in names}
     for s in range(config.coverage_seeds):
         rng = np.random.default_rng(10_000 + s)
         Zs = clean + config.noise * rng.standard_normal(clean.shape)
@@ -409,10 +436,17 @@ def coverage_study(config, Q0, Yt, sweep, clean, truth, mu, sigma, out_degree) -
                                          slave=slave, degree=out_degree)
             rows[name].append(_stats(torch.exp(res.Q[-1])))
         rows["exact"].append(grid_posterior(sweep, Zs, config.noise ** 2, mu, sigma, config.grid).stats())
+        if restart is not None:
+            Q0_all, idx = restart
+            res = sequential_filter(Q0_all, sweep.forecaster(idx), Zt[idx], r,
+                                    torch.Generator().manual_seed(config.filter_seed + 100 + s))
+            rows["restart"].append(_stats(torch.exp(res.Q[-1])))
+            rows["exact_restart_frames"].append(
+                grid_posterior(sweep, Zs, config.noise ** 2, mu, sigma, config.grid, frames=idx).stats())
     out = {}
     for name, st in rows.items():
         inside = [s["p10"] <= truth <= s["p90"] for s in st]
-        out[name] = {"coverage_80": float(np.mean(inside)), "seeds": len(st),
+        out[name] = {"coverage_80": float(np.mean(inside)), "seeds": len(st), "inside": inside,
                      "mean_of_means": float(np.mean([s["mean"] for s in st])),
                      "mean_std": float(np.mean([s["std"] for s in st]))}
     return out

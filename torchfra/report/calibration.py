@@ -102,6 +102,8 @@ def write_calibration_outputs(out: dict, run_dir, wall_s: float) -> dict:
     }
     summary["direct_fe_check"] = out["direct_fe_check"]
     summary["polynomial_slave"] = {"degree": out["slave_degree"], "leave_one_out_rms_mm": out["slave_loo_rms_mm"]}
+    if "restart_spline_check" in out:
+        summary["restart_spline_check"] = out["restart_spline_check"]
     if "coverage" in out:
         summary["coverage"] = out["coverage"]
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=1))
