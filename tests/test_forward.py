@@ -51,3 +51,35 @@ def test_forward_run_files_and_resume(tmp_path):
     assert np.array_equal(again["Y_fe"], result["Y_fe"])
     with pytest.raises(ValueError, match="other settings"):
         run_forward(ForwardConfig(members=3, resolution=1, load_steps=1, frames=10, chunk=1), run_dir)
+
+
+def test_forward_flags_a_member_that_does_not_converge(tmp_path, monkeypatch):
+    """A member whose solve fails is flagged in status, summary and forward.npz, keeps NaN (never zeros
+    or a neighbour's values) beyond the load it reached, and is left out of the summary's statistics,
+    while the other member of its chunk finishes."""
+    from torchfra import forward
+
+    def params_with_a_hopeless_member(config):
+        p = member_parameters(config)
+        p["C10"][1] = 1e-5  # P / C10 = 200 at full load: far beyond what the increments allow here
+        p["D1"][1] = 1.0 / (config.bulk_ratio * p["C10"][1])
+        return p
+
+    monkeypatch.setattr(forward, "member_parameters", params_with_a_hopeless_member)
+    config = ForwardConfig(members=2, resolution=1, load_steps=2, frames=10, chunk=2, pressure=0.002,
+                           newton={"stagnation_tol": 1e-6, "max_iterations": 8, "min_increment": 0.02})
+    run_dir = tmp_path / "fwd"
+    result = run_forward(config, run_dir, progress=False)
+    assert list(result["status"]) == ["converged", "diverged"]
+    assert result["load_reached"][1] < 1.0 and result["cutbacks"][1] > 0
+    summary = write_forward_outputs(result, config, run_dir)
+    assert summary["members_converged"] == 1 and summary["members_failed"] == [1]
+    data = np.load(run_dir / "forward.npz")
+    assert list(data["status"]) == ["converged", "diverged"]
+    t = data["times"]
+    beyond = t > result["load_reached"][1] + 1e-12
+    assert beyond.any() and np.isnan(data["Y"][1, beyond]).all()
+    assert np.isfinite(data["Y"][0]).all()
+    # the summary's ensemble statistics are those of the converged member alone
+    track = int(data["tracked_point_index"])
+    assert np.allclose(summary["tracked_displacement_mean"], data["Y"][0, -1, track])
