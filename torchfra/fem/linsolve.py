@@ -60,17 +60,23 @@ def resolve_backend(name: str, size: int = 0) -> str:
 
 
 class Factorization:
-    """LU factors of one sparse matrix; ``solve(b)`` for b (n,) or (n, k)."""
+    """LU factors of one sparse matrix; ``solve(b)`` for b (n,) or (n, k).
 
-    def __init__(self, K: sp.spmatrix, backend: str = "auto"):
+    ``symmetric=True`` promises K = K^T (the Hessian of a total potential: see
+    ``Model.symmetric_tangent``); PARDISO then factorizes its upper triangle as real symmetric
+    indefinite (Bunch-Kaufman pivoting), 0.060 s instead of 0.106 s on the 4,218-dof actuator
+    tangent. SuperLU ignores the promise."""
+
+    def __init__(self, K: sp.spmatrix, backend: str = "auto", symmetric: bool = False):
         self.backend = resolve_backend(backend, K.shape[0])
         self._solver = None
         if self.backend == "pardiso":
             _point_pypardiso_at_mkl()
             import pypardiso
 
-            self._K = sp.csr_matrix(K)
-            self._solver = pypardiso.PyPardisoSolver(mtype=11)  # real non-symmetric: safe for follower loads
+            # real symmetric indefinite (-2) on the upper triangle, or real non-symmetric (11): follower loads
+            self._K = sp.triu(K, format="csr") if symmetric else sp.csr_matrix(K)
+            self._solver = pypardiso.PyPardisoSolver(mtype=-2 if symmetric else 11)
             self._solver.factorize(self._K)
         else:
             try:

@@ -50,6 +50,12 @@ class Model:
     def n_nodes(self) -> int:
         return self.X.shape[0]
 
+    @property
+    def symmetric_tangent(self) -> bool:
+        """True when every term is conservative: the tangent is then the Hessian of the total
+        potential (through the constraints too), hence symmetric, and Newton may factorize it as such."""
+        return all(t.conservative for t in self.terms)
+
     # -- read-only description (exporters, reports) ---------------------------------------------------
     @property
     def clamped_dofs(self) -> np.ndarray:

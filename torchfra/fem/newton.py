@@ -258,7 +258,7 @@ def solve(
             da = torch.full((need.size, n), float("nan"), dtype=dtype)
             for j in range(need.size):
                 try:
-                    lu = Factorization(evt.tangents[j], opt.linear_solver)
+                    lu = Factorization(evt.tangents[j], opt.linear_solver, model.symmetric_tangent)
                     da[j] = torch.as_tensor(lu.solve(-evt.rhs[j].numpy()))
                     lu.release()
                 except SingularMatrixError:  # the member is cut back below
@@ -311,7 +311,7 @@ def _euler_velocity(model: Model, pack: _Packing, params, dtype, backend: str, h
     v = torch.zeros_like(a0)
     for m in range(N):
         try:
-            lu = Factorization(ev.tangents[m], backend)
+            lu = Factorization(ev.tangents[m], backend, model.symmetric_tangent)
             v[m] = torch.as_tensor(lu.solve(-dr[m].numpy()))
             lu.release()
         except SingularMatrixError:  # singular initial tangent: start from zero, Newton will tell
