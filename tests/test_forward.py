@@ -83,3 +83,11 @@ def test_forward_flags_a_member_that_does_not_converge(tmp_path, monkeypatch):
     # the summary's ensemble statistics are those of the converged member alone
     track = int(data["tracked_point_index"])
     assert np.allclose(summary["tracked_displacement_mean"], data["Y"][0, -1, track])
+    # TensorBoard: a point per member, and the status table lists the failed member
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(run_dir), size_guidance={"tensors": 0}).Reload()
+    assert [e.value for e in events.Scalars("newton/cutbacks")][1] == result["cutbacks"][1]
+    assert events.Scalars("newton/members_converged")[0].value == 1
+    table = events.Tensors("newton/status/text_summary")[0].tensor_proto.string_val[0].decode()
+    assert "| 1 | diverged |" in table

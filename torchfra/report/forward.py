@@ -10,7 +10,7 @@ import torch
 from matplotlib.figure import Figure
 
 from ..io.vtu import element_fields, write_vtu
-from .tensorboard import log_figure, log_hparams, log_mesh, open_writer
+from .tensorboard import log_figure, log_hparams, log_mesh, log_newton_records, open_writer
 
 TRACKED_YZ = (0.0, 40.0)  # mm: the node the paper plots (front face, top centre of the cavity span)
 
@@ -72,13 +72,7 @@ def write_forward_outputs(result: dict, config, run_dir: str | Path) -> dict:
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=1))
 
     writer = open_writer(run_dir)
-    for m, history in enumerate(result["history"]):
-        for k, value in enumerate(np.asarray(history, dtype=float)):
-            writer.add_scalar(f"newton/residual/member_{m:03d}", value, k)
-        writer.add_scalar("newton/iterations", float(result["iterations"][m]), m)
-        writer.add_scalar("newton/cutbacks", float(result["cutbacks"][m]), m)
-    for phase, seconds in result["timings"].items():
-        writer.add_scalar(f"timing_s/{phase}", seconds, 0)
+    log_newton_records(writer, {**result, "residual_history": result["history"]})
     fig = band_figure(result["times"], [Y_tr[converged, :, 0], Y_tr[converged, :, 1]],
                       ["tracked u_y (mm)", "tracked u_z (mm)"],
                       f"prior ensemble, {int(converged.sum())} members, node at (y, z) = {TRACKED_YZ} mm")

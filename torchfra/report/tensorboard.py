@@ -38,38 +38,41 @@ def open_writer(run_dir: str | Path) -> SummaryWriter:
 
 def log_solution(writer: SummaryWriter, solution: Solution, tag: str = "newton") -> None:
     """Log the Newton record of every member of ``solution`` (see the module docstring for tags)."""
-    N = len(solution.status)
-    width = len(str(max(N - 1, 0)))
-    for m, history in enumerate(solution.residual_history):
-        for k, value in enumerate(history):
+    log_newton_records(writer, vars(solution), tag)
+
+
+_RECORDS = ("iterations", "increments", "cutbacks", "load_reached", "last_residual")
+
+
+def log_newton_records(writer: SummaryWriter, records: dict, tag: str = "newton") -> None:
+    """The same from per-member arrays: ``status``, ``residual_history``, ``timings`` and the
+    ``_RECORDS`` (a ``Solution``'s fields, or a forward run's records gathered over its chunks)."""
+    status = np.asarray(records["status"])
+    width = len(str(max(len(status) - 1, 0)))
+    for m, history in enumerate(records["residual_history"]):
+        for k, value in enumerate(np.asarray(history, dtype=np.float64)):
             writer.add_scalar(f"{tag}/residual/member_{m:0{width}d}", value, k)
-    per_member = {
-        "iterations": solution.iterations,
-        "increments": solution.increments,
-        "cutbacks": solution.cutbacks,
-        "load_reached": solution.load_reached,
-        "last_residual": solution.last_residual,
-    }
-    for name, values in per_member.items():
-        for m, value in enumerate(np.asarray(values, dtype=np.float64)):
+    for name in _RECORDS:
+        for m, value in enumerate(np.asarray(records[name], dtype=np.float64)):
             writer.add_scalar(f"{tag}/{name}", value, m)
-    writer.add_scalar(f"{tag}/members_converged", int(np.sum(solution.status == "converged")), 0)
-    for phase, seconds in solution.timings.items():
+    writer.add_scalar(f"{tag}/members_converged", int(np.sum(status == "converged")), 0)
+    for phase, seconds in records["timings"].items():
         writer.add_scalar(f"{tag}/timing_s/{phase}", seconds, 0)
-    writer.add_text(f"{tag}/status", status_table(solution), 0)
+    writer.add_text(f"{tag}/status", status_table(records), 0)
 
 
-def status_table(solution: Solution) -> str:
+def status_table(records) -> str:
     """Markdown table, one row per member: status, load reached, iterations, increments, cutbacks,
-    last relative residual."""
+    last relative residual. ``records``: a ``Solution`` or a dict of its per-member fields."""
+    r = records if isinstance(records, dict) else vars(records)
     rows = [
         "| member | status | load reached | iterations | increments | cutbacks | last residual |",
         "|---|---|---|---|---|---|---|",
     ]
-    for m, status in enumerate(solution.status):
+    for m, status in enumerate(r["status"]):
         rows.append(
-            f"| {m} | {status} | {solution.load_reached[m]:.4g} | {solution.iterations[m]} | "
-            f"{solution.increments[m]} | {solution.cutbacks[m]} | {solution.last_residual[m]:.2e} |"
+            f"| {m} | {status} | {r['load_reached'][m]:.4g} | {r['iterations'][m]} | "
+            f"{r['increments'][m]} | {r['cutbacks'][m]} | {r['last_residual'][m]:.2e} |"
         )
     return "\n".join(rows)
 
