@@ -4,7 +4,6 @@ import math
 
 import numpy as np
 import pytest
-import torch
 
 from torchfra.forward import ForwardConfig, lognormal_parameters, member_parameters, run_forward
 from torchfra.report.forward import write_forward_outputs
