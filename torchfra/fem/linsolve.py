@@ -98,3 +98,81 @@ class Factorization:
 
     def __del__(self):
         self.release()
+
+
+class SparseSolver:
+    """Factorize one matrix after another, all of the same sparsity pattern (the members of an
+    ensemble, the iterations of Newton), and solve with the latest.
+
+    With PARDISO the symbolic analysis (fill-reducing ordering, about 45 % of a factorization of
+    the actuator tangent) is done once per pattern and reused: numeric factorizations only
+    (phase 22) while the pattern stays the same, a new analysis when it changes. Other backends
+    factorize each matrix from scratch (:class:`Factorization`).
+
+    >>> solver = SparseSolver("auto", symmetric=True)
+    >>> solver.factorize(K1); x1 = solver.solve(b1)
+    >>> solver.factorize(K2); x2 = solver.solve(b2)   # same pattern: no new analysis
+    >>> solver.release()
+    """
+
+    def __init__(self, backend: str = "auto", symmetric: bool = False):
+        self.backend, self.symmetric = backend, symmetric
+        self.analyses = 0  # symbolic analyses done (PARDISO)
+        self._pardiso = None
+        self._pattern = None
+        self._K = None
+        self._lu: Factorization | None = None
+
+    def factorize(self, K: sp.spmatrix) -> None:
+        if resolve_backend(self.backend, K.shape[0]) != "pardiso" or not _has_phases():
+            self.release()
+            self._lu = Factorization(K, self.backend, self.symmetric)
+            return
+        if self._pardiso is None:
+            _point_pypardiso_at_mkl()
+            import pypardiso
+
+            self._pardiso = pypardiso.PyPardisoSolver(mtype=-2 if self.symmetric else 11)
+        A = sp.triu(K, format="csr") if self.symmetric else sp.csr_matrix(K)
+        A.sort_indices()
+        same = (self._pattern is not None and np.array_equal(A.indptr, self._pattern[0])
+                and np.array_equal(A.indices, self._pattern[1]))
+        self._pardiso.set_phase(22 if same else 12)  # numeric factorization only, or analysis + factorization
+        try:
+            self._pardiso._call_pardiso(A, np.zeros((A.shape[0], 1)))
+        except Exception as exc:  # pypardiso raises its own error type for PARDISO's error codes
+            self._pattern = None
+            raise SingularMatrixError(f"PARDISO factorization failed: {exc}") from exc
+        if not same:
+            self._pattern = (A.indptr.copy(), A.indices.copy())
+            self.analyses += 1
+        self._K = A
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        if self._lu is not None:
+            return self._lu.solve(b)
+        b = np.asarray(b, dtype=np.float64)
+        self._pardiso.set_phase(33)
+        x = self._pardiso._call_pardiso(self._K, np.asfortranarray(b.reshape(b.shape[0], -1)))
+        return x.reshape(b.shape)
+
+    def release(self) -> None:
+        if self._lu is not None:
+            self._lu.release()
+            self._lu = None
+        if self._pardiso is not None:
+            self._pardiso.free_memory(everything=True)
+            self._pardiso, self._pattern, self._K = None, None, None
+
+    def __del__(self):
+        self.release()
+
+
+def _has_phases() -> bool:
+    """pypardiso exposes PARDISO's phases only through ``set_phase`` and ``_call_pardiso`` (0.4.x);
+    without them every matrix is analysed again."""
+    try:
+        import pypardiso
+    except ImportError:
+        return False
+    return all(hasattr(pypardiso.PyPardisoSolver, m) for m in ("set_phase", "_call_pardiso", "free_memory"))

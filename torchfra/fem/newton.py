@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .linsolve import Factorization, SingularMatrixError
+from .linsolve import SingularMatrixError, SparseSolver
 from .model import Model
 
 
@@ -201,6 +201,8 @@ def solve(
         velocity = torch.zeros(N, pack.size, dtype=dtype)
         x = start.x.to(dtype).clone()
         x_conv, x_prev = x.clone(), x.clone()
+    # one solver for every member and iteration: the tangents share one sparsity pattern
+    linear = SparseSolver(opt.linear_solver, model.symmetric_tangent)
     ls_base, ls_dx = torch.zeros_like(x), torch.zeros_like(x)
     ls_alpha, ls_count = np.ones(N), np.zeros(N, dtype=np.int64)
     ls_pending, r_prev, rel_prev = np.zeros(N, dtype=bool), np.zeros(N), np.full(N, np.inf)
@@ -258,9 +260,8 @@ def solve(
             da = torch.full((need.size, n), float("nan"), dtype=dtype)
             for j in range(need.size):
                 try:
-                    lu = Factorization(evt.tangents[j], opt.linear_solver, model.symmetric_tangent)
-                    da[j] = torch.as_tensor(lu.solve(-evt.rhs[j].numpy()))
-                    lu.release()
+                    linear.factorize(evt.tangents[j])
+                    da[j] = torch.as_tensor(linear.solve(-evt.rhs[j].numpy()))
                 except SingularMatrixError:  # the member is cut back below
                     pass
             timings["solve"] += time.perf_counter() - t0
@@ -290,6 +291,7 @@ def solve(
         idx = np.flatnonzero(active)
     if bar is not None:
         bar.close()
+    linear.release()
 
     u_out = torch.full((N, T, model.n_nodes, 3), float("nan"), dtype=dtype)
     for k in range(T):
@@ -309,13 +311,14 @@ def _euler_velocity(model: Model, pack: _Packing, params, dtype, backend: str, h
     ev = model.evaluate(a0, params, lam, tangent=True, local=local0)
     dr = (model.evaluate(a0, params, lam + h, local=local0).rhs - model.evaluate(a0, params, lam - h, local=local0).rhs) / (2 * h)
     v = torch.zeros_like(a0)
+    linear = SparseSolver(backend, model.symmetric_tangent)
     for m in range(N):
         try:
-            lu = Factorization(ev.tangents[m], backend, model.symmetric_tangent)
-            v[m] = torch.as_tensor(lu.solve(-dr[m].numpy()))
-            lu.release()
+            linear.factorize(ev.tangents[m])
+            v[m] = torch.as_tensor(linear.solve(-dr[m].numpy()))
         except SingularMatrixError:  # singular initial tangent: start from zero, Newton will tell
             v[m] = 0.0
+    linear.release()
     if pack.size == model.n_red:
         return v
     # dp/dlambda = -K_pp^-1 K_pu du/dlambda, du/dlambda including prescribed displacements

@@ -156,7 +156,6 @@ def _material_tangent(A: GaussPointTangent, w: torch.Tensor, dN: torch.Tensor) -
         AdN = torch.einsum("negijkl,egbl->negijbk", A.dense, dN)
         return torch.einsum("eg,egaj,negijbk->neaibk", w, dN, AdN).reshape(N, E, 60, 60)
     N, E, G = A.c.shape
-    eye = torch.eye(3, dtype=w.dtype, device=w.device)
     left = [(w * s)[..., None] * _nodal_gradients(dN, X) for s, X, _ in A.pairs]
     right = [_nodal_gradients(dN, Y) for _, _, Y in A.pairs]
     Ke = torch.matmul(torch.cat(left, dim=2).transpose(-1, -2), torch.cat(right, dim=2))
