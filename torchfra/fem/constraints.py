@@ -124,6 +124,7 @@ class DofMap:
         )
         self._T_torch = _csr(self.T, dtype)
         self._TT_torch = None
+        self._T_csr_t = None
         self.u_presc = torch.as_tensor(u_presc, dtype=dtype)
         self.dtype = dtype
 
@@ -151,10 +152,14 @@ class DofMap:
     def _rotation_jacobians(self, a):
         return [vmap(jacfwd(rotation_matrix))(a[:, b.columns[3:]]) for b in self.bodies]
 
-    def jacobian(self, a: torch.Tensor) -> list[sp.csr_matrix]:
-        """J = du/da per member (scipy CSR)."""
+    def jacobian(self, a: torch.Tensor, transposed: bool = False) -> list[sp.csr_matrix]:
+        """J = du/da per member (scipy CSR), or J^T (built as CSR directly: no format conversion
+        in the products J^T K J)."""
+        if self._T_csr_t is None:
+            self._T_csr_t = self.T.T.tocsr()
+        T = self._T_csr_t if transposed else self.T
         if not self.bodies:
-            return [self.T] * a.shape[0]
+            return [T] * a.shape[0]
         rows, cols, vals = [], [], []
         for b, dRdt in zip(self.bodies, self._rotation_jacobians(a)):
             d = np.einsum("nijt,kj->nkit", dRdt.numpy(), b.dX.numpy())  # (N, k, 3, 3)
@@ -162,8 +167,10 @@ class DofMap:
             cols.append(np.tile(b.columns[3:], 3 * b.nodes.size))
             vals.append(d.reshape(a.shape[0], -1))
         r, c = np.concatenate(rows), np.concatenate(cols)
+        if transposed:
+            r, c = c, r
         v = np.concatenate(vals, axis=1)
-        return [self.T + sp.csr_matrix((v[n], (r, c)), shape=self.T.shape) for n in range(a.shape[0])]
+        return [T + sp.csr_matrix((v[n], (r, c)), shape=T.shape) for n in range(a.shape[0])]
 
     def geometric_stiffness(self, a: torch.Tensor, r_full: torch.Tensor) -> list[tuple[np.ndarray, np.ndarray]]:
         """Per body, ``(columns, H)`` with H (N, 3, 3) = d2/dtheta2 of sum_i r_i . R(theta) dX_i."""

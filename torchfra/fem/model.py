@@ -262,12 +262,12 @@ class Model:
 
     def _reduced_tangents(self, a, r_full, blocks) -> list[sp.csr_matrix]:
         data = self.pattern.assemble(blocks).numpy()
-        Js = self.dofmap.jacobian(a)
+        Js, JTs = self.dofmap.jacobian(a), self.dofmap.jacobian(a, transposed=True)
         geo = self.dofmap.geometric_stiffness(a, r_full)
         Ks = []
         for m in range(a.shape[0]):
             K = self.pattern.to_scipy(data[m])
-            Kr = Js[m].T @ (K @ Js[m])
+            Kr = JTs[m] @ (K @ Js[m])
             if geo:
                 rows = np.concatenate([np.repeat(cols, 3) for cols, _ in geo])
                 cols_ = np.concatenate([np.tile(cols, 3) for cols, _ in geo])
