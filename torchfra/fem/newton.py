@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from .linsolve import SingularMatrixError, SparseSolver
-from .model import Model
+from .model import Evaluation, Model
 
 
 @dataclass
@@ -45,6 +45,8 @@ class NewtonOptions:
     linear_solver: str = "auto"  # "superlu", "pardiso" (optional extra) or "auto" (pardiso if installed)
     line_search_growth: float = 1e6  # backtrack when ||r|| grows more than this (near-incompressible
     # Newton steps legitimately raise ||r|| by orders of magnitude before converging quadratically)
+    tangent_hint: float = 1e-5  # evaluate the tangent with the residual when the member's last relative
+    # residual exceeds this (its next iterate will most likely need a step): one evaluation, not two
 
 
 CONVERGED, DIVERGED = "converged", "diverged"
@@ -174,6 +176,23 @@ def solve(
         timings["tangent" if tangent else "residual"] += time.perf_counter() - t0
         return ev
 
+    def evaluate_iterates(idx):
+        """Residuals of the iterates of ``idx``, with tangents (member -> matrix) for those that will
+        most likely take a Newton step: the start of an increment, or a residual still far from
+        converged (quadratic convergence squares it)."""
+        hint = np.array([it[m] == 0 or rel_prev[m] > opt.tangent_hint for m in idx])
+        if hint.all() or not hint.any():
+            ev = evaluate(idx, x[idx], tangent=bool(hint.any()))
+            return ev, dict(zip(idx.tolist(), ev.tangents)) if hint.any() else {}
+        with_t, without = evaluate(idx[hint], x[idx[hint]], tangent=True), evaluate(idx[~hint], x[idx[~hint]])
+        merged = {}
+        for name in ("residual", "force_scale", "ok", "rhs"):
+            a, b = getattr(with_t, name), getattr(without, name)
+            out = torch.empty((idx.size,) + tuple(a.shape[1:]), dtype=a.dtype)
+            out[torch.as_tensor(hint)], out[torch.as_tensor(~hint)] = a, b
+            merged[name] = out
+        return Evaluation(**merged), dict(zip(idx[hint].tolist(), with_t.tangents))
+
     def predictor(m):
         return x_conv[m] + (lam[m] - lam_conv[m]) * velocity[m]
 
@@ -208,7 +227,7 @@ def solve(
     ls_pending, r_prev, rel_prev = np.zeros(N, dtype=bool), np.zeros(N), np.full(N, np.inf)
     idx = np.flatnonzero(active)
     while idx.size:
-        ev = evaluate(idx, x[idx])
+        ev, tangents_at = evaluate_iterates(idx)
         rnorm = torch.maximum(torch.linalg.norm(ev.residual, dim=1), torch.linalg.norm(ev.rhs, dim=1)).numpy()
         scale = ev.force_scale.numpy()
         rel = rnorm / np.maximum(scale, 1e-300)
@@ -255,13 +274,16 @@ def solve(
                 r_prev[m] = rnorm[j]
         if need:
             need = np.asarray(need)
-            evt = evaluate(need, x[need], tangent=True)
+            rhs = ev.rhs[np.searchsorted(idx, need)]  # condensed residuals at the iterates
+            missing = np.array([m for m in need if m not in tangents_at], dtype=np.int64)
+            if missing.size:  # the hint was wrong for these: evaluate their tangents now
+                tangents_at.update(zip(missing.tolist(), evaluate(missing, x[missing], tangent=True).tangents))
             t0 = time.perf_counter()
             da = torch.full((need.size, n), float("nan"), dtype=dtype)
-            for j in range(need.size):
+            for j, m in enumerate(need):
                 try:
-                    linear.factorize(evt.tangents[j])
-                    da[j] = torch.as_tensor(linear.solve(-evt.rhs[j].numpy()))
+                    linear.factorize(tangents_at[m])
+                    da[j] = torch.as_tensor(linear.solve(-rhs[j].numpy()))
                 except SingularMatrixError:  # the member is cut back below
                     pass
             timings["solve"] += time.perf_counter() - t0
@@ -272,7 +294,7 @@ def solve(
                                            torch.as_tensor(lam[need], dtype=dtype), local_need)
             dx = pack.join(da_safe, [None if l is None else nl - l for nl, l in zip(new_local, local_need)])
             for j, m in enumerate(need):
-                dot = abs(float(da_safe[j] @ evt.rhs[j]))
+                dot = abs(float(da_safe[j] @ rhs[j]))
                 if it[m] == 0:
                     E0[m] = dot
                 de[m] = dot
