@@ -1,6 +1,9 @@
 """Shared fixtures-by-function for the tests (small meshes and models)."""
 from __future__ import annotations
 
+import importlib.util
+from pathlib import Path
+
 import numpy as np
 import torch
 
@@ -38,3 +41,12 @@ def block_with_cavity(n=3, size=3.0):
     face_sets = {k: v[v[:, 0] >= 0] for k, v in face_sets.items()}
     face_sets["cavity"] = np.array(cavity)
     return fem.Mesh(full.nodes, elements, full.node_sets, face_sets)
+
+
+def load_script(name: str):
+    """Import ``scripts/<name>.py`` as a module (the scripts are not a package)."""
+    path = Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

@@ -1,9 +1,7 @@
 """The FEM demo script end to end on a tiny ensemble, and the exporters it relies on."""
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import meshio
 import numpy as np
@@ -13,16 +11,11 @@ import torch
 from torchfra import fem
 from torchfra.geometry.structured import box_mesh
 from torchfra.io.vtu import element_fields, write_vtu
+from helpers import load_script
 from torchfra.report.tensorboard import boundary_triangles
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "fem_demo.py"
-
-
 def _load_demo():
-    spec = importlib.util.spec_from_file_location("fem_demo", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("fem_demo")
 
 
 def test_demo_writes_a_sane_run(tmp_path):
