@@ -15,6 +15,11 @@ K/mu = 2e6); an iterate whose relative residual is below ``stagnation_tol`` and 
 Divergence (cut the increment by ``cutback`` and retry from the last converged state): a
 non-finite residual, an inadmissible state (det F <= 0) after line search, a singular tangent,
 or no convergence within ``max_iterations``.
+
+Cost: all members' tangents share one sparsity pattern, so one :class:`SparseSolver` serves the
+whole solve (PARDISO analyses the pattern once), factorizing symmetric tangents as such; the
+tangent is evaluated together with the residual for iterates that will most likely take a step
+(``tangent_hint``), which saves the second evaluation without changing any iterate.
 """
 from __future__ import annotations
 
