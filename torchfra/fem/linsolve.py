@@ -10,6 +10,7 @@ PARDISO factorizes in 0.16 s against SuperLU's 0.76 s, and it is no slower from 
 """
 from __future__ import annotations
 
+import functools
 import os
 from importlib import metadata
 
@@ -138,9 +139,11 @@ class SparseSolver:
         same = (self._pattern is not None and np.array_equal(A.indptr, self._pattern[0])
                 and np.array_equal(A.indices, self._pattern[1]))
         self._pardiso.set_phase(22 if same else 12)  # numeric factorization only, or analysis + factorization
+        from pypardiso.pardiso_wrapper import PyPardisoError
+
         try:
             self._pardiso._call_pardiso(A, np.zeros((A.shape[0], 1)))
-        except Exception as exc:  # pypardiso raises its own error type for PARDISO's error codes
+        except PyPardisoError as exc:  # PARDISO's error codes (e.g. a zero pivot)
             self._pattern = None
             raise SingularMatrixError(f"PARDISO factorization failed: {exc}") from exc
         if not same:
@@ -168,6 +171,7 @@ class SparseSolver:
         self.release()
 
 
+@functools.cache
 def _has_phases() -> bool:
     """pypardiso exposes PARDISO's phases only through ``set_phase`` and ``_call_pardiso`` (0.4.x);
     without them every matrix is analysed again."""
