@@ -79,10 +79,13 @@ def main(argv=None) -> dict:
         out = run_calibration(config, run_dir)
     finally:
         for h in helpers:
+            stopped = False
             if h.poll() is None and not (forward_dir(config, run_dir.parent) / "forward.npz").exists():
                 h.terminate()  # the main process failed or was stopped: do not leave helpers behind
-            if h.wait() != 0:
-                print(f"forward helper process {h.pid} exited with {h.returncode}", file=sys.stderr)
+                stopped = True
+            if h.wait() != 0 and not stopped:
+                print(f"forward helper process {h.pid} failed (exit status {h.returncode}); the members it "
+                      "had not saved are solved by a rerun", file=sys.stderr)
     summary = write_calibration_outputs(out, run_dir, time.perf_counter() - t0)
     print(json.dumps({"filters": {k: v["C10"] for k, v in summary["filters"].items()},
                       "truth": summary["truth"], "run": str(run_dir)}, indent=1))

@@ -90,3 +90,61 @@ def test_forward_flags_a_member_that_does_not_converge(tmp_path, monkeypatch):
     assert events.Scalars("newton/members_converged")[0].value == 1
     table = events.Tensors("newton/status/text_summary")[0].tensor_proto.string_val[0].decode()
     assert "| 1 | diverged |" in table
+
+
+class _Payload:
+    """Unpickling this object would create a marker file: proof of code execution."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (open, (str(self.marker), "w"))
+
+
+def test_planted_pickle_chunk_is_refused_not_executed(tmp_path):
+    """A crafted member chunk (copied run, shared cache) holding a pickle payload is refused by name,
+    and the payload never runs: chunks are read with allow_pickle=False."""
+    config = ForwardConfig(members=1, resolution=1, load_steps=1, frames=10, pressure=0.002)
+    run_dir = tmp_path / "fwd"
+    (run_dir / "members").mkdir(parents=True)
+    (run_dir / "config.json").write_text(json.dumps(__import__("dataclasses").asdict(config)))
+    marker = tmp_path / "executed"
+    np.savez(run_dir / "members" / "chunk_00000.npz", Y=np.array([_Payload(marker)], dtype=object))
+    with pytest.raises(ValueError, match=r"chunk_00000\.npz is not a forward-ensemble chunk.*delete it"):
+        run_forward(config, run_dir, progress=False)
+    assert not marker.exists()
+
+
+def test_lock_of_a_recycled_pid_is_taken_over(tmp_path, capsys):
+    """A chunk lock naming a live PID that now belongs to another process (or a dead one) does not
+    make the run wait forever: it is taken over with a message, and the member is solved."""
+    import os
+    import socket
+
+    config = ForwardConfig(members=1, resolution=1, load_steps=1, frames=10, pressure=0.002)
+    run_dir = tmp_path / "fwd"
+    (run_dir / "members").mkdir(parents=True)
+    (run_dir / "config.json").write_text(json.dumps(__import__("dataclasses").asdict(config)))
+    lock = run_dir / "members" / "chunk_00000.lock"
+    lock.write_text(json.dumps({"host": socket.gethostname(), "pid": os.getpid(), "start": "-1", "time": 0.0}))
+    result = run_forward(config, run_dir, progress=True)
+    assert result["status"].tolist() == ["converged"] and not lock.exists()
+    assert "now belongs to another process" in capsys.readouterr().err
+
+
+def test_chunks_are_per_member_and_carry_arrays_only(tmp_path):
+    """Default checkpoints hold one member each (a stop loses at most one member's work) and load
+    with allow_pickle=False, residual histories intact."""
+    from torchfra.forward import load_chunk
+
+    config = ForwardConfig(members=2, resolution=1, load_steps=1, frames=10, pressure=0.002)
+    assert config.chunk == 1
+    result = run_forward(config, tmp_path / "fwd", progress=False)
+    chunks = sorted((tmp_path / "fwd" / "members").glob("chunk_*.npz"))
+    assert [c.name for c in chunks] == ["chunk_00000.npz", "chunk_00001.npz"]
+    for m, c in enumerate(chunks):
+        with np.load(c, allow_pickle=False) as data:
+            assert all(data[k].dtype != object for k in data.files)
+        rec = load_chunk(c)
+        assert rec["history"] == [list(result["history"][m])] and rec["Y"].shape[0] == 1

@@ -13,6 +13,8 @@ from __future__ import annotations
 import json
 import math
 import os
+import socket
+import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -55,7 +57,7 @@ class ForwardConfig:
     pressure: float = 0.022
     load_steps: int = 20
     frames: int = 100
-    chunk: int = 10
+    chunk: int = 1  # members per batched solve and checkpoint (batching gains nothing: 0.92x measured)
     threads: int = 1
     newton: dict = field(default_factory=lambda: {"stagnation_tol": 1e-6})
 
@@ -89,25 +91,117 @@ def _check_resume(run_dir: Path, config: ForwardConfig) -> None:
         path.write_text(json.dumps(saved, indent=1))
 
 
-def _claim(lock: Path) -> bool:
+LOCK_EXPIRY_S = 3600.0  # a lock of another host older than this is taken as abandoned
+
+
+def _process_start(pid: int) -> str | None:
+    """Start time of a live process on this host (clock ticks since boot), None if there is none:
+    tells a recycled PID from the process that wrote a lock."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        return stat.rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return None
+        except PermissionError:
+            pass
+        return "unknown"  # alive, start time not readable (no /proc)
+
+
+def _lock_owner() -> dict:
+    return {"host": socket.gethostname(), "pid": os.getpid(), "start": _process_start(os.getpid()),
+            "time": time.time()}
+
+
+def _stale(lock: Path) -> str | None:
+    """Why a lock is abandoned (its process is gone, its PID was reused, or another host's lock
+    expired), or None while its owner may still be working."""
+    try:
+        owner = json.loads(lock.read_text())
+        host, pid, start = owner["host"], int(owner["pid"]), owner["start"]
+    except (OSError, ValueError, KeyError, TypeError):
+        age = time.time() - lock.stat().st_mtime if lock.exists() else 0.0
+        return "it is unreadable" if age > 60.0 else None  # give a writer a moment to finish writing it
+    if host != socket.gethostname():
+        age = time.time() - float(owner.get("time", 0.0))
+        return f"host {host} last touched it {age / 60:.0f} min ago" if age > LOCK_EXPIRY_S else None
+    now = _process_start(pid)
+    if now is None:
+        return f"process {pid} has ended"
+    if start is not None and now not in ("unknown", start):
+        return f"process id {pid} now belongs to another process"
+    return None
+
+
+def _claim(lock: Path, quiet: bool = False) -> bool:
     """Take the lock file of a member chunk, so several worker processes can share one run folder
-    (``python scripts/forward_uq.py`` started twice on a 2-core machine). A lock whose process has
-    died (killed run) is taken over."""
+    (``python scripts/forward_uq.py`` started twice on a 2-core machine). The lock names host, PID,
+    process start time and time; an abandoned lock (dead process, recycled PID, another host's lock
+    past ``LOCK_EXPIRY_S``) is taken over with a message, so a run never waits forever."""
     try:
         fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
     except FileExistsError:
-        try:
-            pid = int(lock.read_text() or 0)
-            os.kill(pid, 0)
-            return False  # held by a live worker
-        except (ValueError, ProcessLookupError):
-            lock.unlink(missing_ok=True)
-            return _claim(lock)
-        except PermissionError:
+        why = _stale(lock)
+        if why is None:
             return False
+        if not quiet:
+            print(f"taking over {lock.name}: {why}", file=sys.stderr, flush=True)
+        lock.unlink(missing_ok=True)
+        return _claim(lock, quiet)
     with os.fdopen(fd, "w") as f:
-        f.write(str(os.getpid()))
+        f.write(json.dumps(_lock_owner()))
     return True
+
+
+CHUNK_ARRAYS = ("Y", "u_last", "status", "load_reached", "iterations", "increments", "cutbacks", "last_residual",
+                "history_values", "history_lengths", "timings")
+
+
+def save_chunk(path: Path, history: list[list[float]], timings: dict, **arrays) -> None:
+    """Write a solved member chunk in a format that carries arrays only (loaded without unpickling):
+    the per-member residual histories flattened with their lengths, timings as a JSON string.
+    Written aside and renamed, so a killed run never leaves half a chunk."""
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, **{k: np.asarray(v) if k != "status" else np.asarray(v, dtype=str) for k, v in arrays.items()},
+             history_values=np.asarray([x for h in history for x in h], dtype=np.float64),
+             history_lengths=np.asarray([len(h) for h in history], dtype=np.int64),
+             timings=np.asarray(json.dumps(timings)))
+    tmp.replace(path)
+
+
+def load_chunk(path: Path) -> dict:
+    """Read a chunk written by :func:`save_chunk`; never unpickles. A file that is not such a chunk
+    (an older format, a damaged or planted file) is refused by name."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            missing = [k for k in CHUNK_ARRAYS if k not in data.files]
+            if missing:
+                raise ValueError(f"arrays {missing} are missing")
+            out = {k: data[k] for k in CHUNK_ARRAYS}
+        timings = json.loads(str(out.pop("timings")))
+        if not isinstance(timings, dict):
+            raise ValueError("timings is not a JSON object")
+    except Exception as exc:  # zip, pickle, key and JSON errors alike: one clear message
+        raise ValueError(
+            f"{path} is not a forward-ensemble chunk this version can read ({exc}); it may be from an "
+            "older version, damaged, or planted: delete it and rerun to solve those members again"
+        ) from None
+    lengths = out.pop("history_lengths")
+    values = out.pop("history_values")
+    if lengths.sum() != values.size or (lengths < 0).any():
+        raise ValueError(f"{path}: residual histories do not add up; delete it and rerun")
+    edges = np.concatenate([[0], np.cumsum(lengths)])
+    out["history"] = [values[edges[i]:edges[i + 1]].tolist() for i in range(lengths.size)]
+    out["timings"] = timings
+    return out
+
+
+def _finished(chunks_dir: Path, starts: list[int], config: ForwardConfig) -> int:
+    """Members whose chunk is on disk, whichever process solved it."""
+    return sum(min(s + config.chunk, config.members) - s for s in starts
+               if (chunks_dir / f"chunk_{s:05d}.npz").exists())
 
 
 def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = True) -> dict:
@@ -129,42 +223,48 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
     chunks_dir.mkdir(exist_ok=True)
     starts = list(range(0, config.members, config.chunk))
     bar = None
+    reused = _finished(chunks_dir, starts, config)
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=config.members, desc=f"forward ensemble ({model.n_red} dofs)", unit="member")
+        if reused:
+            print(f"forward ensemble: reusing {reused} of {config.members} members already solved in {chunks_dir}",
+                  flush=True)
+        # initial=reused: the rate, hence the time left, comes from members solved in this run only
+        # (by this process or any other worker on the same folder), never from loading cached ones
+        bar = tqdm(total=config.members, initial=reused, unit="member", smoothing=0,
+                   desc=f"forward ensemble, {model.n_red} dofs, FE solves")
     for start in starts:
         stop = min(start + config.chunk, config.members)
         path = chunks_dir / f"chunk_{start:05d}.npz"
-        if path.exists() or not _claim(path.with_suffix(".lock")):
-            if bar is not None and path.exists():
-                bar.update(stop - start)
+        if path.exists() or not _claim(path.with_suffix(".lock"), quiet=not progress):
             continue  # done, or another worker on the same run folder is solving it
         chunk_params = {k: v[start:stop] for k, v in params.items()}
+        t_chunk = time.perf_counter()
         sol = fem.solve(model, chunk_params, load, fem.NewtonOptions(**config.newton))
         u = sol.u[:, :, : mesh.n_nodes]
-        np.savez(
-            path.with_suffix(".tmp.npz"),
-            Y=operator(u).numpy(), u_last=sol.u[:, -1].numpy(),
-            status=sol.status, load_reached=sol.load_reached, iterations=sol.iterations,
-            increments=sol.increments, cutbacks=sol.cutbacks, last_residual=sol.last_residual,
-            history=np.array([np.asarray(h) for h in sol.residual_history], dtype=object),
-            timings=json.dumps(sol.timings),
-        )
-        path.with_suffix(".tmp.npz").replace(path)  # a killed run never leaves half a chunk
+        save_chunk(path, Y=operator(u).numpy(), u_last=sol.u[:, -1].numpy(), status=sol.status,
+                   load_reached=sol.load_reached, iterations=sol.iterations, increments=sol.increments,
+                   cutbacks=sol.cutbacks, last_residual=sol.last_residual, history=sol.residual_history,
+                   timings={**sol.timings, "wall": time.perf_counter() - t_chunk})
         path.with_suffix(".lock").unlink()
         if bar is not None:
-            bar.update(stop - start)
+            bar.update(_finished(chunks_dir, starts, config) - bar.n)
     records = []
     for start in starts:  # chunks other workers hold: wait for them (a dead worker's lock is taken over)
         path = chunks_dir / f"chunk_{start:05d}.npz"
         while not path.exists():
-            if _claim(path.with_suffix(".lock")):
+            if _claim(path.with_suffix(".lock"), quiet=not progress):
                 path.with_suffix(".lock").unlink()
+                if bar is not None:
+                    bar.close()
                 return run_forward(config, run_dir, progress)
+            if bar is not None:  # members other workers finish count as progress too
+                bar.update(_finished(chunks_dir, starts, config) - bar.n)
             time.sleep(2.0)
-        records.append(dict(np.load(path, allow_pickle=True)))
+        records.append(load_chunk(path))
     if bar is not None:
+        bar.update(config.members - bar.n)
         bar.close()
     Y_steps = np.concatenate([r["Y"] for r in records])  # (N, S, P, 2) at the load steps
     times = frame_times(config.frames)
@@ -175,7 +275,7 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
            ("status", "load_reached", "iterations", "increments", "cutbacks", "last_residual", "u_last")}
     timings: dict[str, float] = {}
     for r in records:
-        for k, v in json.loads(str(r["timings"])).items():
+        for k, v in r["timings"].items():
             timings[k] = timings.get(k, 0.0) + v
     return {
         "model": model, "info": info, "operator": operator, "params": params, "load_factors": load,

@@ -384,7 +384,8 @@ class ObservationOperator:
             W = self.weights.tocoo()
             index = torch.as_tensor(np.stack([W.row, W.col]), dtype=torch.int64, device=device)
             values = torch.as_tensor(W.data, dtype=dtype, device=device)
-            self._weights_cache[key] = torch.sparse_coo_tensor(index, values, W.shape).coalesce()
+            self._weights_cache[key] = torch.sparse_coo_tensor(  # built from a valid SciPy matrix: no checks needed
+                index, values, W.shape, check_invariants=False).coalesce()
         return self._weights_cache[key]
 
     def nearest_point(self, y: float, z: float) -> int:

@@ -17,8 +17,10 @@ def locate_points(mesh: Mesh, X: np.ndarray, tol: float = 1e-6, chunk: int = 4_0
     a tenth of its size, contains the point; Newton runs on all (point, candidate) pairs at once.
     A point belongs to an element if the element's image of its clipped natural coordinates
     ``clip(xi, -1, 1)`` lies within ``tol`` (mm) of it, so points on the boundary (the helix
-    touching the outer face) are found. Among several hosts the one with the smallest distance, then
-    the most interior ``max |xi|``, wins. Returns ``elements (n,)`` and ``xi (n, 3)`` (clipped).
+    touching the outer face) are found. Among several hosts within ``tol`` the most interior
+    ``max |xi|`` wins, then the lowest element id: a point on a face shared by two elements (a fiber
+    end on a layer boundary) is placed by a fixed rule, not by round-off in the distances (the
+    interpolation is continuous across the face, so either host gives the same constraint). Returns ``elements (n,)`` and ``xi (n, 3)`` (clipped).
     """
     X = np.asarray(X, dtype=np.float64).reshape(-1, 3)
     XE = mesh.nodes[mesh.elements]  # (E, 20, 3)
@@ -57,8 +59,8 @@ def locate_points(mesh: Mesh, X: np.ndarray, tol: float = 1e-6, chunk: int = 4_0
     dist = np.linalg.norm(target - np.einsum("ka,kai->ki", N, nodes), axis=1)
     interior = np.abs(xi).max(1)
 
-    # best pair of every point: smallest distance, then most interior; first of each point after sorting
-    order = np.lexsort((interior, dist, p_idx))
+    # best pair of every point: most interior (to round-off), then lowest element id
+    order = np.lexsort((e_idx, np.round(interior, 9), p_idx))
     order = order[dist[order] <= tol]
     points, first = np.unique(p_idx[order], return_index=True)
     host = np.full(X.shape[0], -1, dtype=np.int64)
