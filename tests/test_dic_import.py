@@ -1,4 +1,4 @@
-"""DIC export readers and the pressure trace.
+"""DIC export readers, the pressure trace, and scripts/import_dic.py end to end.
 
 The small files below are written with the headers (names, units, quoting, preambles) the programs
 write (DESIGN §8); numbers are written to full precision so round trips can be checked to 1e-6 mm.
@@ -8,8 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from helpers import load_script
 from torchfra.io.dic import DicError, frame_numbers, read_dic, read_frame, read_landmarks
 from torchfra.io.pressure_trace import pressure_at_frames, read_pressure_trace
+from torchfra.recordings import Recording, read_recording
 
 MATCHID_2024 = ("Coordinates.Image X [Pixel],Coordinates.Image Y [Pixel],coor.X [mm],coor.Y [mm],coor.Z [mm],"
                 "disp.Horizontal Displacement U [mm],disp.Vertical Displacement V [mm],disp.Out-Of-Plane: W [mm],"
@@ -35,6 +37,11 @@ def write(path: Path, text: str) -> Path:
 def num(v: float) -> str:
     """A field as written by a program that leaves lost values empty."""
     return "" if not np.isfinite(v) else repr(float(v))
+
+
+def full(v: float) -> str:
+    """A field as written by a program that writes NaN."""
+    return repr(float(v)) if np.isfinite(v) else "NaN"
 
 
 # -- single frames ---------------------------------------------------------------------------------------
@@ -190,3 +197,183 @@ def test_pressure_trace_errors_and_frame_matching(tmp_path):
     with pytest.raises(DicError, match="DIC frame 6 is at t = 1.25 s"):
         pressure_at_frames(tr, [4, 5, 6], "time", frame_rate=2.0, first_frame_time=0.25)
 
+
+# -- end to end: scripts/import_dic.py --------------------------------------------------------------------
+
+import_dic = load_script("import_dic")
+NORMAL = np.array([1.0, 0.0, 0.0])
+CORNERS = np.array([[8.0, -8.0, 0.0], [8.0, 8.0, 0.0], [8.0, 8.0, 60.0], [8.0, -8.0, 60.0]])
+
+
+def face_recording(seed: int = 0):
+    """A contract recording of a DIC-like grid on the front face x = 8 (4 frames, frame 0 the
+    undeformed reference), smooth made-up displacements, ~6 % of later point-frames lost; also the
+    out-of-plane displacement ux a 3-D camera would see. Returns (recording, U (K, P, 3) mm, lost)."""
+    rng = np.random.default_rng(seed)
+    y, z = np.meshgrid(np.arange(-7.0, 7.01, 1.75), np.arange(2.0, 58.1, 4.0))
+    X = np.stack([np.full(y.size, 8.0), y.ravel(), z.ravel()], axis=1)
+    lam = np.arange(4) / 3
+    U = lam[:, None, None] * np.stack([0.4 * np.sin(X[:, 2] / 15), -12.0 * (X[:, 2] / 60) ** 2,
+                                       0.8 * X[:, 2] / 60 + 0.1 * X[:, 1] / 8], axis=1)[None]
+    lost = np.zeros(U.shape[:2], dtype=bool)
+    lost[1:] = rng.random((3, len(X))) < 0.06
+    Z = np.where(lost[..., None], np.nan, U[..., 1:])
+    rec = Recording(np.arange(4), 0.5 * np.arange(4), 0.022 * lam, np.arange(len(X)), X, Z, "truth")
+    return rec, U, lost
+
+
+def camera_3d(rng):
+    Q, R = np.linalg.qr(rng.standard_normal((3, 3)))
+    Q = Q * np.sign(np.diag(R))
+    return (Q if np.linalg.det(Q) > 0 else -Q), rng.uniform(-300.0, 300.0, 3)
+
+
+def export_3d(fmt, out, rec, U, lost, rng):
+    """Write the recording as a 3-D export seen by a camera at a random pose (model = R p + t), with one
+    extra speckle 3 mm in front of the face; landmarks: the face corners picked with depth errors."""
+    R, t = camera_3d(rng)
+    X = np.vstack([rec.X, [11.0, 0.5, 31.0]])
+    P, Ucam = (X - t) @ R, np.concatenate([U, np.zeros((len(U), 1, 3))], axis=1) @ R
+    lost = np.concatenate([lost, np.zeros((len(U), 1), dtype=bool)], axis=1)
+    pix = np.stack([500 + 40 * X[:, 1], 2600 - 40 * X[:, 2]], axis=1)
+    depth = rng.uniform(-1.0, 1.0, (4, 1)) * (NORMAL @ R)
+    landmarks = (CORNERS - t) @ R + depth
+    f = 1e-3 if fmt == "generic" else 1.0
+    for k in range(len(U)):
+        rows = []
+        for i in range(len(X)):
+            if fmt == "matchid2024":
+                if lost[k, i]:
+                    continue  # MatchID leaves lost points out
+                rows.append(",".join(map(num, [*pix[i], *P[i], *Ucam[k, i], 0.001, 0.002, 0.0])))
+            elif fmt == "matchid":
+                u = np.full(3, np.nan) if lost[k, i] else Ucam[k, i]
+                rows.append(",".join(map(num, [*pix[i], *P[i], *u, 0.0, 0.0, 0.0])))
+            elif fmt in ("vic3d", "vic3d;"):
+                if lost[k, i]:
+                    cells = [*pix[i], 0, 0, -1 if i % 2 else np.nan, 0, 0, 0, 0, 0, 0, 0, 0, 0]
+                else:
+                    cells = [*pix[i], 0.5, 0.5, 0.01, *P[i], *Ucam[k, i], 0, 0, 0]
+                rows.append(",".join(map(num, cells)))
+            else:
+                u = np.full(3, np.nan) if lost[k, i] else Ucam[k, i]
+                if k == 3 and lost[k, i]:
+                    continue  # the last frame leaves lost points out: matched by coordinates
+                rows.append(",".join(f"{full(v)}" for v in [*(P[i] * f), *(u * f)]))
+        if fmt == "matchid2024":
+            write(out / f"specimen_{k:04d}_0.tif.csv", MATCHID_2024 + "\n" + "\n".join(rows) + "\n")
+        elif fmt == "matchid":
+            write(out / f"specimen_{k:04d}_0.tif.csv", MATCHID_SHORT + "\n" + "\n".join(rows) + "\n")
+        elif fmt == "vic3d":
+            write(out / f"spec_{k:04d}_0.csv", VIC3D + "\n" + "\n".join(rows) + "\n")
+        elif fmt == "vic3d;":
+            text = VIC3D + "\n" + "\n".join(rows) + "\n"
+            write(out / f"spec_{k:04d}_0.csv", f'"spec_{k:04d}_0.tif"\n' + text.replace(",", ";"))
+        else:
+            write(out / f"cloud-{k:03d}.csv", "x,y,z,u,v,w\n" + "\n".join(rows) + "\n")
+    lm = "dic_x,dic_y,dic_z,model_x,model_y,model_z\n" + "".join(
+        ",".join(f"{full(v)}" for v in [*(a * f), *b]) + "\n" for a, b in zip(landmarks, CORNERS))
+    return write(out.parent / "landmarks.csv", lm)
+
+
+def export_dice(out, rec, U, lost, rng, scale=0.025):
+    """Write the recording as DICe 2-D solutions: image plane parallel to the face, image y down,
+    pixels; one extra subset beside the actuator (y = 12 mm); later frames list subsets shuffled."""
+    a = rng.uniform(0, 2 * np.pi)
+    ex, ey = np.array([0.0, np.cos(a), np.sin(a)]), np.array([0.0, np.sin(a), -np.cos(a)])
+    R = np.stack([ex, ey, np.cross(ex, ey)], axis=1)  # model = scale R p + t, p = (x_px, y_px, 0)
+    t = np.array([8.0, -40.0, 80.0])
+    X = np.vstack([rec.X, [8.0, 12.0, 30.0]])
+    P, Upx = (X - t) @ R / scale, np.concatenate([U, np.zeros((len(U), 1, 3))], axis=1) @ R / scale
+    assert np.abs(P[:, 2]).max() < 1e-9
+    lost = np.concatenate([lost, np.zeros((len(U), 1), dtype=bool)], axis=1)
+    for k in range(len(U)):
+        order = rng.permutation(len(X)) if k else np.arange(len(X))
+        rows = []
+        for i in order:
+            sigma, u = (-1.0, (0.0, 0.0)) if lost[k, i] else (0.005, Upx[k, i, :2])
+            rows.append(",".join(f"{v:.16E}" for v in [P[i, 0], P[i, 1], *u, sigma, 0.02, 0.0, 4.0, 0.007, 0, 0, 0]))
+            rows[-1] = f"{i}," + rows[-1]
+        write(out / f"DICe_solution_{k}.txt", DICE_PREAMBLE + DICE + "\n" + "\n".join(rows) + "\n")
+    lm = "dic_x,dic_y,model_x,model_y,model_z\n" + "".join(
+        f"{full(p[0])},{full(p[1])},{full(c[0])},{full(c[1])},{full(c[2])}\n" for p, c in zip((CORNERS - t) @ R / scale, CORNERS))
+    return write(out.parent / "landmarks.csv", lm)
+
+
+def assert_same(rec, truth):
+    assert rec.frames.tolist() == truth.frames.tolist()
+    assert rec.point_ids.tolist() == truth.point_ids.tolist()
+    assert np.allclose(rec.times, truth.times, rtol=0, atol=1e-12)
+    assert np.allclose(rec.pressure, truth.pressure, rtol=0, atol=1e-12)
+    assert np.abs(rec.X - truth.X).max() < 1e-6
+    assert np.array_equal(rec.mask, truth.mask)
+    assert np.nanmax(np.abs(rec.Z - truth.Z)) < 1e-6
+
+
+@pytest.mark.parametrize("fmt", ["matchid2024", "matchid", "vic3d", "vic3d;", "generic", "dice"])
+def test_import_dic_round_trip(tmp_path, capsys, fmt):
+    truth, U, lost = face_recording()
+    rng = np.random.default_rng(["matchid2024", "matchid", "vic3d", "vic3d;", "generic", "dice"].index(fmt))
+    export = tmp_path / "export"
+    out = tmp_path / "rec.csv"
+    args = [str(export), "--out", str(out), "--format", "auto"]
+    if fmt == "dice":
+        landmarks = export_dice(export, truth, U, lost, rng)
+        # a dense trace in ms and Pa, the frames taken by time at 2 frames per second
+        t = np.linspace(0.0, 2.0, 21)
+        trace = write(tmp_path / "trace.csv", "Time [ms];Pressure [Pa]\n"
+                      + "".join(f"{full(1e3 * ti)};{full(1e6 * 0.022 * ti / 1.5)}\n" for ti in t))
+        args += ["--scale", "0.025", "--match", "time", "--frame-rate", "2"]
+    else:
+        landmarks = export_3d(fmt, export, truth, U, lost, rng)
+        if fmt.startswith("vic3d"):  # a frame column and more samples than exported frames
+            trace = write(tmp_path / "trace.csv", "frame,time [s],pressure [bar]\n" + "".join(
+                f"{k},{full(0.5 * k)},{full(0.22 * k / 3)}\n" for k in range(8)))
+        else:  # one row per frame in file order, placed in the export directory itself
+            trace = write(export / "pressure.csv", "time [s],pressure [kPa]\n" + "".join(
+                f"{full(ti)},{full(1e3 * p)}\n" for ti, p in zip(truth.times, truth.pressure)))
+        if fmt in ("matchid", "generic"):
+            args += ["--units", "m" if fmt == "generic" else "mm"]
+    assert import_dic.main(args + ["--pressure", str(trace), "--landmarks", str(landmarks)]) == 0
+    assert_same(read_recording(out), truth)
+    said = " ".join(capsys.readouterr().out.split())
+    assert "Imported 4 frames (0..3)" in said and "1 farther than 0.5 mm from the face and dropped" in said
+    assert f"(ids {len(truth.X)})" in said and "residual RMS" in said
+
+
+def test_import_dic_identity_for_exports_already_in_the_model_frame(tmp_path):
+    truth, U, lost = face_recording(1)
+    rows = lambda k: "".join(",".join(f"{full(v)}" for v in [*truth.X[i], *(np.nan * U[k, i] if lost[k, i] else U[k, i])])
+                             + "\n" for i in range(len(truth.X)))
+    for k in range(4):
+        write(tmp_path / "e" / f"frame{k}.csv", "x [mm],y [mm],z [mm],u [mm],v [mm],w [mm]\n" + rows(k))
+    trace = write(tmp_path / "p.csv", "time,pressure [MPa]\n" + "".join(
+        f"{full(ti)},{full(p)}\n" for ti, p in zip(truth.times, truth.pressure)))
+    out = tmp_path / "rec.npz"
+    assert import_dic.main([str(tmp_path / "e"), "--pressure", str(trace), "--out", str(out),
+                            "--camera-to-model", "identity"]) == 0
+    assert_same(read_recording(out), truth)
+    assert (tmp_path / "rec.import.json").exists()
+
+
+@pytest.mark.parametrize("case, message", [
+    ("dice_no_scale", "in pixels; give the scale in mm per pixel"),
+    ("unknown", "columns found: a, b, c"),
+    ("no_landmarks", "3 of the 6 degrees of freedom undetermined"),
+    ("trace_units", "gives no unit"),
+])
+def test_import_dic_errors_are_one_paragraph_and_exit_code_2(tmp_path, capsys, case, message):
+    truth, U, lost = face_recording()
+    export = tmp_path / "export"
+    if case == "dice_no_scale":
+        export_dice(export, truth, U, lost, np.random.default_rng(0))
+    elif case == "unknown":
+        write(export / "f_1.csv", "a,b,c\n1,2,3\n")
+    else:
+        export_3d("vic3d", export, truth, U, lost, np.random.default_rng(0))
+    trace = write(tmp_path / "p.csv", "time,pressure" + ("" if case == "trace_units" else " [kPa]") + "\n"
+                  + "".join(f"{k},{k}\n" for k in range(4)))
+    assert import_dic.main([str(export), "--pressure", str(trace), "--out", str(tmp_path / "r.csv")]) == 2
+    err = capsys.readouterr().err
+    assert message in " ".join(err.split()) and "Traceback" not in err and "\n\n" not in err.strip()
+    assert not (tmp_path / "r.csv").exists()
