@@ -2,6 +2,7 @@
 import numpy as np
 import pytest
 
+from torchfra.geometry.actuator import ActuatorGeometry
 from torchfra.geometry.structured import box_mesh
 from torchfra.registration import (PlaneFace, RegistrationError, SampleFace, Similarity, evaluate, front_face,
                                    mesh_face, register, umeyama)
@@ -145,3 +146,10 @@ def test_evaluate_identity_measures_distances_to_the_bounded_face():
     assert reg.outlier_ids.tolist() == [9, 10]
     assert np.allclose(reg.on_face[1], [8.0, 1.0, 2.0])
     assert np.isclose(reg.rms, np.sqrt(0.02)) and np.isclose(reg.max, 0.2)
+
+
+def test_front_face_defaults_are_the_actuators():
+    g = ActuatorGeometry()
+    face = front_face()
+    assert np.allclose(face.normal, NORMAL) and face.origin[0] == g.width_x / 2
+    assert face.lo.tolist() == [-g.width_y / 2, 0.0] and face.hi.tolist() == [g.width_y / 2, g.length]

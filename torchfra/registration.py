@@ -85,14 +85,11 @@ class PlaneFace:
         return pts, np.ones(len(pts))
 
 
-def front_face(geometry=None) -> PlaneFace:
-    """The actuator's camera-visible front face x = +w_x/2, y in [-w_y/2, w_y/2], z in [0, L]
-    (DESIGN §3: x = +8 mm, y in [-8, 8], z in [0, 60] for the paper's actuator)."""
-    if geometry is None:
-        from .geometry.actuator import ActuatorGeometry
-        geometry = ActuatorGeometry()
-    return PlaneFace((geometry.width_x / 2, 0.0, 0.0), ((0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),
-                     (-geometry.width_y / 2, 0.0), (geometry.width_y / 2, geometry.length))
+def front_face(width_x: float = 16.0, width_y: float = 16.0, length: float = 60.0) -> PlaneFace:
+    """The actuator's camera-visible front face x = +w_x/2, y in [-w_y/2, w_y/2], z in [0, L]; the
+    defaults are the paper's actuator (``ActuatorGeometry``'s: x = +8 mm, y in [-8, 8], z in [0, 60])."""
+    return PlaneFace((width_x / 2, 0.0, 0.0), ((0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), (-width_y / 2, 0.0),
+                     (width_y / 2, length))
 
 
 class TriangleFace:
@@ -334,7 +331,7 @@ def _plane_step(T: Similarity, x, q, n, scale, src, dst, nl) -> tuple[Similarity
     cols = [np.cross(a, n) / L, n] + ([(n * a).sum(1, keepdims=True) / L] if scale else [])
     J = np.concatenate(cols, axis=1)
     r = (n * (x - q)).sum(1)
-    U, S, Vt = np.linalg.svd(J, full_matrices=True)
+    U, S, Vt = np.linalg.svd(J, full_matrices=False)  # m >= dof rows: Vt holds the null space too
     rank = int((S > _RANK_TOL * S[0]).sum())
     delta = Vt[:rank].T @ ((U[:, :rank].T @ -r) / S[:rank])
     free = Vt[rank:].T

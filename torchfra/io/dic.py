@@ -31,16 +31,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..recordings import Recording, from_table, to_table
+from .tables import MAX_PREAMBLE, DicError, name_unit, read_lines, split_line
 
 ROLES = ("x", "y", "z", "u", "v", "w")
 LENGTH_UNITS = {"mm": 1.0, "m": 1e3, "cm": 10.0, "um": 1e-3, "µm": 1e-3, "μm": 1e-3, "in": 25.4}
 PIXEL_UNITS = ("pixel", "pixels", "px")
 SUFFIXES = (".csv", ".txt", ".dat")
-MAX_PREAMBLE = 64  # lines searched for the header
-
-
-class DicError(ValueError):
-    """A DIC export that cannot be read as it is; the message names the file, line or frame."""
 
 
 @dataclass(frozen=True)
@@ -93,46 +89,6 @@ def expected_columns(layouts=LAYOUTS) -> str:
 
 
 # -- text --------------------------------------------------------------------------------------------------
-
-_UNIT = re.compile(r"^(.*?)\s*[\[(]\s*([^\])]*?)\s*[\])]\s*$")
-
-
-def name_unit(cell: str) -> tuple[str, str | None]:
-    """``"coor.X [mm]"`` -> ``("coor.X", "mm")``; ``"x"`` -> ``("x", None)``; ``[ ]`` -> ``""``."""
-    cell = cell.strip().strip('"').strip()
-    m = _UNIT.match(cell)
-    return (m.group(1).strip(), m.group(2)) if m else (cell, None)
-
-
-def split_line(line: str) -> tuple[list[str], str]:
-    """Cells of one text line and the delimiter (``,``, ``;`` or tab: whichever gives most cells)."""
-    best = ([line.strip()], ",")
-    for delim in (",", ";", "\t"):
-        cells = next(csv.reader([line], delimiter=delim), [])
-        if len(cells) > len(best[0]):
-            best = (cells, delim)
-    return [c.strip() for c in best[0]], best[1]
-
-
-def to_float(text: str, decimal_comma: bool) -> float:
-    text = text.strip()
-    if not text:
-        return np.nan
-    try:
-        return float(text)
-    except ValueError:
-        if decimal_comma:
-            return float(text.replace(",", "."))
-        raise
-
-
-def read_lines(path: Path) -> list[str]:
-    try:
-        with open(path, newline="", encoding="utf-8-sig", errors="replace") as f:
-            return f.read().splitlines()
-    except OSError as exc:
-        raise DicError(f"{path}: cannot read ({exc.strerror})") from exc
-
 
 def find_header(lines: list[str], layouts) -> tuple[int, list[str], str, Layout] | None:
     """First line (within the preamble limit) naming every column of one of ``layouts``."""
@@ -198,6 +154,35 @@ def length_factor(path, column: str, unit: str | None, layout: Layout, scale, un
     return LENGTH_UNITS[key]
 
 
+def _numbers(path, lines, h: int, delim: str, idx: list[int], n_header: int) -> tuple[np.ndarray, np.ndarray]:
+    """Columns ``idx`` of the rows below header line ``h`` as floats (empty: NaN); and the line numbers."""
+    numbers = [k for k, line in enumerate(lines[h + 1:], start=h + 2) if line.strip()]
+    rows = csv.reader((lines[k - 1] for k in numbers), delimiter=delim)
+    try:
+        text = np.array([[r[i] for i in idx] for r in rows], dtype=str).reshape(-1, len(idx))
+    except IndexError:
+        k = next(k for k in numbers if len(next(csv.reader([lines[k - 1]], delimiter=delim))) <= max(idx))
+        raise DicError(f"{path}, line {k}: fewer fields than the {n_header} of the header") from None
+    text = np.char.strip(text)
+    text[text == ""] = "nan"
+    if delim != ",":  # decimal commas come with ';' or tab separated files
+        text = np.char.replace(text, ",", ".")
+    try:
+        return text.astype(np.float64), np.asarray(numbers, dtype=np.int64)
+    except ValueError:
+        bad = next(i for i, row in enumerate(text) if not all(_is_number(c) for c in row))
+        raise DicError(f"{path}, line {numbers[bad]}: cannot read {lines[numbers[bad] - 1].strip()!r} as "
+                       "numbers") from None
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+        return True
+    except ValueError:
+        return False
+
+
 def read_frame(path, fmt: str = "auto", *, scale=None, units=None) -> DicFrame:
     """Read one export file (any supported layout, detected from its header)."""
     path = Path(path)
@@ -215,20 +200,7 @@ def read_frame(path, fmt: str = "auto", *, scale=None, units=None) -> DicFrame:
     wanted = dict(lay.columns)
     extras = dict(sigma=lay.sigma, ident=lay.ident, **dict(zip(("key0", "key1"), lay.keys or ())))
     wanted.update({role: c for role, c in extras.items() if c and c in col})
-    decimal_comma = delim != ","
-    rows, numbers = [], []
-    for k, line in enumerate(lines[h + 1:], start=h + 2):
-        if not line.strip():
-            continue
-        cells_k = next(csv.reader([line], delimiter=delim))
-        try:
-            rows.append([to_float(cells_k[col[c]], decimal_comma) for c in wanted.values()])
-        except IndexError:
-            raise DicError(f"{path}, line {k}: {len(cells_k)} fields, but the header has {len(names)}") from None
-        except ValueError:
-            raise DicError(f"{path}, line {k}: cannot read {line.strip()!r} as numbers") from None
-        numbers.append(k)
-    table = np.asarray(rows, dtype=np.float64).reshape(-1, len(wanted))
+    table, numbers = _numbers(path, lines, h, delim, [col[c] for c in wanted.values()], len(names))
     v = dict(zip(wanted, table.T))
     units_of = {r: name_unit(cells[col[c]])[1] for r, c in lay.columns.items()}
     factor = {r: length_factor(path, lay.columns[r], units_of[r], lay, scale, units) for r in lay.columns}
@@ -315,9 +287,9 @@ def export_files(source, fmt: str = "auto", exclude=()) -> tuple[list[Path], lis
         d = sources[0]
         candidates = sorted((p for p in d.iterdir() if p.is_file() and p.suffix.lower() in SUFFIXES
                              and p.resolve() not in skip), key=lambda p: natural_key(p.name))
-        files = [p for p in candidates if find_header(read_lines(p), layouts) is not None]
+        files = [p for p in candidates if find_header(read_lines(p, MAX_PREAMBLE), layouts) is not None]
         if not files:
-            seen = header_guess(read_lines(candidates[0])) if candidates else []
+            seen = header_guess(read_lines(candidates[0], MAX_PREAMBLE)) if candidates else []
             raise DicError(f"{d}: no {'DIC export' if fmt == 'auto' else fmt + ' export'} among its "
                            f"{len(candidates)} .csv/.txt/.dat files"
                            + (f"; columns found: {', '.join(seen)} (in {candidates[0].name})" if seen else "")
