@@ -109,6 +109,13 @@ def test_generic_cloud_in_metres(tmp_path):
         read_frame(write(tmp_path / "q.csv", "x [mm],y [mm],z [mm],u [mm],v [mm],w [mm]\n1,2,3,0,0,0\n"), units="m")
 
 
+def test_bad_rows_are_refused_by_line(tmp_path):
+    with pytest.raises(DicError, match=r"line 3: cannot read '4,5,six,0,0,0'"):
+        read_frame(write(tmp_path / "a.csv", "x,y,z,u,v,w\n1,2,3,0,0,0\n4,5,six,0,0,0\n"), units="mm")
+    with pytest.raises(DicError, match="line 2: fewer fields than the 6 of the header"):
+        read_frame(write(tmp_path / "b.csv", "x,y,z,u,v,w\n1,2,3,0\n"), units="mm")
+
+
 def test_unknown_layout_lists_columns_found_and_expected(tmp_path):
     f = write(tmp_path / "frame_1.csv", "Xc,Yc,Zc,dx,dy,dz\n1,2,3,0,0,0\n")
     with pytest.raises(DicError) as err:
