@@ -292,3 +292,31 @@ def test_sensor_gain_is_confounded_with_c10():
     confounded = float((u[0] - u[1]).abs().max() / scale)
     assert confounded < 1e-8, confounded  # measured 5.5e-15 of max |u| = 0.109 mm
     assert float((u[2] - u[3]).abs().max() / scale) > 1e-4  # fixed E_fiber breaks the scaling: 1.2e-2
+
+
+# -- all candidates at their nulls ----------------------------------------------------------------------
+def test_candidates_at_null_reproduce_the_base_model():
+    """The sensor-test block with Mooney-Rivlin (with_material), the pressure sensor
+    (with_pressure_sensor) and gravity added, all at the catalogue's null values, solves to the base
+    model's displacements (Neo-Hookean closed-form path vs Mooney-Rivlin derived path: round-off)."""
+    from torchfra.fem.candidates import CANDIDATES, with_material, with_pressure_sensor
+
+    def build():
+        model = _sensor_model()
+        model.terms = [fem.CavityPressure(model.mesh, "cavity") if isinstance(t, fem.CavityPressure) else t
+                       for t in model.terms]
+        return model
+
+    base_params = {"C10": torch.tensor([0.1]), "D1": torch.tensor([0.01]), "E_fiber": torch.tensor([1000.0]),
+                   "P": torch.tensor([0.08])}
+    base = fem.solve(build(), base_params, [1.0], TIGHT)
+    model = with_pressure_sensor(with_material(build(), fem.MooneyRivlin()))
+    model.add(fem.Gravity(model.mesh, direction=(0.0, 1.0, 0.0)))
+    nulls = {k: torch.tensor([v]) for name in ("mooney_rivlin", "gravity", "pressure_sensor")
+             for k, v in CANDIDATES[name].null_values().items()}
+    assert set(nulls) == {"C01", "density", "pressure_gain", "pressure_offset"}
+    assert set(model.param_names()) == set(base_params) | set(nulls)
+    cand = fem.solve(model, base_params | nulls, [1.0], TIGHT)
+    assert base.converged.all() and cand.converged.all()
+    u0 = base.u[0, -1]
+    assert float((cand.u[0, -1] - u0).abs().max() / u0.abs().max()) < 1e-10  # measured 7.1e-15
