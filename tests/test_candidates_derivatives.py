@@ -193,3 +193,17 @@ def test_registry_entries(cls, name):
     assert isinstance(info, ParameterInfo) and info.name == name and info.unit and info.description
     assert info.null is not None and math.isfinite(info.null)
     assert info.low <= info.null <= info.high
+
+
+def test_catalogue_names_and_nulls():
+    from torchfra.fem.candidates import CANDIDATES
+
+    nulls = {name: c.null_values() for name, c in CANDIDATES.items()}
+    assert nulls == {
+        "mooney_rivlin": {"C01": 0.0}, "compressibility": {"D1": 0.0}, "gravity": {"density": 0.0},
+        "compliant_base": {"c_n": 0.0, "c_t": 0.0}, "fiber_stiffness": {},
+        "pressure_sensor": {"pressure_gain": 1.0, "pressure_offset": 0.0},
+    }
+    for c in CANDIDATES.values():
+        for p in c.parameters:
+            assert p.unit and p.description and p.low < p.high

@@ -16,11 +16,12 @@ pressure_sensor       pressure_gain (1),           ``with_pressure_sensor(model)
                       pressure_offset (0) MPa
 ====================  ===========================  ==============================================
 
-Fiber stiffness ``E_fiber`` (MPa) is a parameter of the base model's ``Truss``; the rigid-fiber
-limit is its null, reached as ``E_fiber -> infinity``.
+Fiber stiffness ``E_fiber`` (MPa) is a parameter of the base model's ``Truss`` (``fiber_stiffness``
+below, no null: the rigid-fiber limit is ``E_fiber -> infinity``).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from ..params import ParameterInfo
@@ -42,7 +43,8 @@ class Candidate:
     parameters: tuple[ParameterInfo, ...]
 
     def null_values(self) -> dict[str, float]:
-        return {p.name: p.null for p in self.parameters}
+        """Parameter values at which the candidate vanishes (base-model parameters have none)."""
+        return {p.name: p.null for p in self.parameters if p.null is not None}
 
 
 CANDIDATES = {
@@ -54,6 +56,10 @@ CANDIDATES = {
         Candidate("gravity", "self-weight of the body", (Gravity.parameters["density"],)),
         Candidate("compliant_base", "distributed springs under the base instead of a clamp",
                   (ElasticSupport.parameters["c_n"], ElasticSupport.parameters["c_t"])),
+        Candidate("fiber_stiffness", "Young's modulus of the fibers (a base-model parameter, refitted)",
+                  (ParameterInfo("E_fiber", "MPa", None, 0.0, math.inf,
+                                 "fiber Young's modulus (31 GPa in the paper); rigid fibers as E_fiber -> inf",
+                                 low_inclusive=False),)),
         Candidate("pressure_sensor", "gain and offset of the pressure sensor",
                   (SensorCavityPressure.parameters["pressure_gain"], SensorCavityPressure.parameters["pressure_offset"])),
     )
