@@ -10,16 +10,16 @@ a closed-form fast path; ``tests/test_materials.py`` pins every fast path to the
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import torch
 from torch.func import grad, jacfwd, vmap
 
+from ..params import ParameterError, ParameterInfo, check_parameters
 from .kinematics import cofactor, det3
 
-
-class ParameterError(ValueError):
-    """A parameter value is missing or outside its admissible range."""
+__all__ = ["GaussPointTangent", "Material", "MooneyRivlin", "NeoHookean", "ParameterError", "PointDerivatives"]
 
 
 @dataclass
@@ -145,6 +145,15 @@ class NeoHookean(Material):
     """
 
     param_names = ("C10", "D1")
+    parameters = {
+        "C10": ParameterInfo("C10", "MPa", None, 0.0, math.inf, "shear modulus mu = 2 C10", low_inclusive=False),
+        "D1": ParameterInfo(
+            "D1", "1/MPa", 0.0, 0.0, math.inf,
+            "compressibility, K = 2/D1; null 0 is the incompressible limit, which the hybrid element reaches "
+            "as D1 -> 0 (the actuator model stands in with D1 = 1/(1000 C10)); nu >= 0 needs D1 <= 3/(2 C10)",
+            low_inclusive=False,
+        ),
+    }
 
     def __init__(self, fast: bool = True):
         self.fast = fast
@@ -185,3 +194,59 @@ class NeoHookean(Material):
             K = 2.0 / prm["D1"]
             psi = C10 * (J ** (-2.0 / 3.0) * I1 - 3.0) + p * (J - 1.0) - p**2 / (2.0 * K)
         return PointDerivatives(psi, P, A, cof)
+
+
+class MooneyRivlin(Material):
+    r"""Abaqus Mooney-Rivlin in the perturbed-Lagrangian mixed form (second invariant candidate).
+
+    .. math::
+        \psi(F, p) = C_{10} (\bar I_1 - 3) + C_{01} (\bar I_2 - 3) + p (J - 1) - \frac{p^2}{2K},
+        \qquad K = 2 / D_1,
+
+    with :math:`\bar I_1 = J^{-2/3} I_1`, :math:`\bar I_2 = J^{-4/3} I_2`,
+    :math:`I_1 = \operatorname{tr} C`, :math:`I_2 = \tfrac12 (I_1^2 - \operatorname{tr} C^2)`,
+    :math:`C = F^T F`. Eliminating ``p`` gives the Abaqus/CalculiX energy
+    :math:`C_{10}(\bar I_1 - 3) + C_{01}(\bar I_2 - 3) + (J - 1)^2 / D_1`; initial shear modulus
+    :math:`\mu = 2 (C_{10} + C_{01})`. Incompressible uniaxial tension at stretch ``lam``:
+    Cauchy stress :math:`\sigma = 2 (\lambda^2 - 1/\lambda)(C_{10} + C_{01}/\lambda)`.
+    Units: C10, C01 in MPa, D1 in 1/MPa, psi in MPa (= mJ/mm^3).
+
+    Null: ``C01 = 0`` is exactly :class:`NeoHookean` (same energy, same stress and tangent).
+    Admissible: ``C10 > 0``, ``C01 >= 0`` (polyconvex, stable in every deformation).
+
+    Stress and tangent are derived from ``psi`` by torch.func. ``fast=True`` (default) evaluates
+    only the pressure terms in closed form, which are those of Neo-Hookean:
+    ``dpsi/dp = J - 1``, ``d2psi/dp2 = -D1/2``, ``d2psi/dFdp = cof F``.
+    """
+
+    param_names = ("C10", "C01", "D1")
+    parameters = {
+        "C10": NeoHookean.parameters["C10"],
+        "C01": ParameterInfo("C01", "MPa", 0.0, 0.0, math.inf,
+                             "second-invariant modulus; mu = 2 (C10 + C01); C01 >= 0 keeps psi polyconvex"),
+        "D1": NeoHookean.parameters["D1"],
+    }
+
+    def __init__(self, fast: bool = True):
+        self.fast = fast
+
+    def validate(self, params):
+        check_parameters(self.parameters, params, f"material {type(self).__name__}")
+
+    def psi(self, F, p, prm):
+        J = det3(F)
+        C = F.transpose(-1, -2) @ F
+        I1 = C.diagonal(dim1=-2, dim2=-1).sum(-1)
+        I2 = 0.5 * (I1**2 - (C * C).sum((-1, -2)))
+        K = 2.0 / prm["D1"]
+        return (prm["C10"] * (J ** (-2.0 / 3.0) * I1 - 3.0) + prm["C01"] * (J ** (-4.0 / 3.0) * I2 - 3.0)
+                + p * (J - 1.0) - p**2 / (2.0 * K))
+
+    def pressure_coefficients(self, F, prm):
+        if not self.fast:
+            return super().pressure_coefficients(F, prm)
+        J = det3(F)
+        return J - 1.0, (-0.5 * prm["D1"]).expand_as(J)
+
+    def pressure_gradient(self, F, p, prm):
+        return cofactor(F) if self.fast else super().pressure_gradient(F, p, prm)

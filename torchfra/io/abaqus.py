@@ -9,7 +9,8 @@ What each torchfra object becomes (ids are 1-based: node ``i`` -> ``i + 1``, mes
 
 - ``Hex20Solid`` with ``NeoHookean`` -> ``*ELEMENT, TYPE=C3D20R`` (both use Abaqus C3D20 node
   order), ``*SOLID SECTION`` and ``*HYPERELASTIC, NEO HOOKE`` with ``C10, D1`` (the same energy
-  ``C10 (I1bar - 3) + (J - 1)^2 / D1``). CalculiX has no hybrid brick: a hybrid body is written
+  ``C10 (I1bar - 3) + (J - 1)^2 / D1``); with ``MooneyRivlin`` ``*HYPERELASTIC, MOONEY-RIVLIN``
+  with ``C10, C01, D1`` (energy ``C10 (I1bar - 3) + C01 (I2bar - 3) + (J - 1)^2 / D1``). CalculiX has no hybrid brick: a hybrid body is written
   as ``element_type`` (C3D20R by default, with a warning; give ``"C3D20RH"`` for Abaqus), so only
   the displacement formulation compares one to one.
 - ``Truss`` -> ``T3D3`` (Abaqus order end, middle, end) or two ``T3D2`` per Line3
@@ -25,7 +26,10 @@ What each torchfra object becomes (ids are 1-based: node ``i`` -> ``i + 1``, mes
   one face are summed into one line (CalculiX adds repeated face loads within a step, Abaqus
   replaces them). CalculiX integrates C3D20R face loads with 2x2 Gauss points; torchfra uses
   3x3, which is exact for a Quad8 face. On a coarse, strongly bent mesh the two differ by about
-  1e-5 of the displacement.
+  1e-5 of the displacement. ``SensorCavityPressure`` is written at its true pressure
+  ``gain P + offset``.
+- ``Gravity`` -> ``*DENSITY`` and ``*DLOAD ..., GRAV``; ``ElasticSupport`` -> ``SPRING1`` and
+  ``SPRING2`` elements that store its discrete energy exactly (see ``abaqus_candidates``).
 - clamped dofs -> ``*BOUNDARY node, dof, dof`` (dof 1, 2, 3 = x, y, z); prescribed dofs ->
   ``*BOUNDARY node, dof, dof, value`` with the value at load factor 1. A clamp wins, as in
   ``Model.finalize``.
@@ -58,11 +62,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fem.materials import NeoHookean
+from ..fem.gravity import Gravity
+from ..fem.materials import MooneyRivlin, NeoHookean
 from ..fem.model import Model
 from ..fem.pressure import CavityPressure, FollowerPressure
+from ..fem.sensor import SensorCavityPressure
 from ..fem.solid import Hex20Solid
+from ..fem.springs import ElasticSupport
 from ..fem.truss import Truss
+from .abaqus_candidates import gravity_of_solids, support_springs
 
 _PRESSURES = (FollowerPressure, CavityPressure)
 
@@ -154,7 +162,7 @@ def write_inp(
     lines = [f"*HEADING\n{title}", "** written by torchfra.io.abaqus.write_inp; ids are 0-based index + 1",
              "*NODE, NSET=NMODEL"]
     lines += [f"{i + 1}, {_num(x)}, {_num(y)}, {_num(z)}" for i, (x, y, z) in enumerate(model.X)]
-    properties, loads = _elements(model, values, element_type, truss_element, truss_poisson, lines)
+    properties, loads, gravity = _elements(model, values, element_type, truss_element, truss_poisson, lines)
     for name, nodes in mesh.node_sets.items():
         lines.append(f"*NSET, NSET=N_{_set_name(name)}")
         lines += _id_lines(np.asarray(nodes) + 1)
@@ -185,6 +193,9 @@ def write_inp(
     if loads:
         lines.append(f"*DLOAD{amplitude}")
         lines += [f"{e + 1}, P{f + 1}, {_num(p)}" for (e, f), p in sorted(loads.items())]
+    if gravity:
+        lines.append(f"*DLOAD{amplitude}")
+        lines += gravity
     lines += ["*NODE PRINT, NSET=NMODEL", "U", "*NODE FILE", "U", "*END STEP"]
 
     path = Path(path)
@@ -193,16 +204,18 @@ def write_inp(
 
 
 def _elements(model, values, element_type, truss_element, truss_poisson, lines):
-    """Append ``*ELEMENT`` blocks to ``lines``; return (section + material lines, face loads)."""
+    """Append ``*ELEMENT`` blocks to ``lines``; return (section + material lines, face loads,
+    gravity ``*DLOAD`` lines)."""
     mesh = model.mesh
-    properties, loads, owner = [], {}, {}
+    properties, loads, owner, gravity_lines = [], {}, {}, []
+    gravity = gravity_of_solids(model, values)
     next_element = mesh.n_elements + 1
     for k, term in enumerate(model.terms):
         if isinstance(term, Hex20Solid):
-            if not isinstance(term.material, NeoHookean):
+            if not isinstance(term.material, (NeoHookean, MooneyRivlin)):
                 raise NotImplementedError(
                     f"term {k} ({type(term.material).__name__} material) has no Abaqus export yet; "
-                    "write_inp maps only NeoHookean to *HYPERELASTIC, NEO HOOKE"
+                    "write_inp maps NeoHookean and MooneyRivlin to *HYPERELASTIC"
                 )
             for e in term.element_ids.tolist():
                 if e in owner:
@@ -221,8 +234,16 @@ def _elements(model, values, element_type, truss_element, truss_poisson, lines):
             for e in term.element_ids.tolist():
                 nodes = [str(n + 1) for n in mesh.elements[e].tolist()]
                 lines += [f"{e + 1}, " + ", ".join(nodes[:15]) + ",", ", ".join(nodes[15:])]
-            properties += [f"*SOLID SECTION, ELSET=SOLID{k}, MATERIAL=MAT{k}", f"*MATERIAL, NAME=MAT{k}",
-                           "*HYPERELASTIC, NEO HOOKE", f"{_num(values['C10'])}, {_num(values['D1'])}"]
+            properties += [f"*SOLID SECTION, ELSET=SOLID{k}, MATERIAL=MAT{k}", f"*MATERIAL, NAME=MAT{k}"]
+            if isinstance(term.material, MooneyRivlin):
+                properties += ["*HYPERELASTIC, MOONEY-RIVLIN",
+                               ", ".join(_num(values[p]) for p in ("C10", "C01", "D1"))]
+            else:
+                properties += ["*HYPERELASTIC, NEO HOOKE", f"{_num(values['C10'])}, {_num(values['D1'])}"]
+            if k in gravity:
+                rho, g, d = gravity[k]
+                properties += ["*DENSITY", _num(rho)]
+                gravity_lines.append(f"SOLID{k}, GRAV, {_num(g)}, " + ", ".join(_num(v) for v in d))
         elif isinstance(term, Truss):
             lines.append(f"*ELEMENT, TYPE={truss_element}, ELSET=TRUSS{k}")
             for a, b, m in (term.conn.numpy() + 1).tolist():
@@ -235,14 +256,30 @@ def _elements(model, values, element_type, truss_element, truss_poisson, lines):
                            f"*MATERIAL, NAME=MAT{k}", "*ELASTIC",
                            f"{_num(values[term.modulus])}, {_num(truss_poisson)}"]
         elif isinstance(term, _PRESSURES):
+            p = values[term.pressure]
+            if isinstance(term, SensorCavityPressure):
+                p = values[term.gain] * p + values[term.offset]
             for e, f in mesh.face_set(term.face_set).tolist():
-                loads[(e, f)] = loads.get((e, f), 0.0) + values[term.pressure]
-        else:
+                loads[(e, f)] = loads.get((e, f), 0.0) + p
+        elif isinstance(term, ElasticSupport):
+            grounded, pairs = support_springs(term, values)
+            groups: dict[tuple, list] = {}
+            for node, comp, stiffness in grounded:
+                groups.setdefault(("SPRING1", f"{comp + 1}", _num(stiffness)), []).append(f"{node + 1}")
+            for a, b, comp, stiffness in pairs:
+                groups.setdefault(("SPRING2", f"{comp + 1}, {comp + 1}", _num(stiffness)), []).append(f"{a + 1}, {b + 1}")
+            for g, ((kind, dofs, stiffness), members) in enumerate(sorted(groups.items())):
+                lines.append(f"*ELEMENT, TYPE={kind}, ELSET=SUPPORT{k}_{g}")
+                for nodes in members:
+                    lines.append(f"{next_element}, {nodes}")
+                    next_element += 1
+                properties += [f"*SPRING, ELSET=SUPPORT{k}_{g}", dofs, stiffness]
+        elif not isinstance(term, Gravity):
             raise NotImplementedError(
                 f"term {k} ({type(term).__name__}) has no Abaqus export; write_inp knows Hex20Solid, Truss, "
-                "FollowerPressure and CavityPressure"
+                "FollowerPressure, CavityPressure, SensorCavityPressure, Gravity and ElasticSupport"
             )
-    return properties, loads
+    return properties, loads, gravity_lines
 
 
 def _clamps(model: Model) -> list[str]:

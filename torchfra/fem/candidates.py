@@ -1,0 +1,94 @@
+"""The library of candidate physics (DESIGN §1.4): what each adds, its parameters, how to switch it on.
+
+Every candidate is a term or a material with named parameters (``ParameterInfo``: unit, null,
+admissible range); at the null values the model is exactly the base model. Switching one on is
+adding a term or swapping a term of an unfinalized model, never editing the solver:
+
+====================  ===========================  ==============================================
+candidate             parameters (null)            switched on by
+====================  ===========================  ==============================================
+mooney_rivlin         C01 (0) MPa                  ``with_material(model, MooneyRivlin())``
+compressibility       D1 (0: incompressible) 1/MPa D1 as a free parameter, not 1/(bulk_ratio C10)
+gravity               density (0) t/mm^3           ``model.add(Gravity(mesh, direction=...))``
+compliant_base        c_n, c_t (0: clamp) mm^3/N   ``support_face(model, face, compliant=True)``
+                                                   in place of ``model.clamp(face)``
+pressure_sensor       pressure_gain (1),           ``with_pressure_sensor(model)``
+                      pressure_offset (0) MPa
+====================  ===========================  ==============================================
+
+Fiber stiffness ``E_fiber`` (MPa) is a parameter of the base model's ``Truss`` (``fiber_stiffness``
+below, no null: the rigid-fiber limit is ``E_fiber -> infinity``).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from ..params import ParameterInfo
+from .gravity import Gravity
+from .materials import Material, MooneyRivlin, NeoHookean
+from .model import Model
+from .pressure import CavityPressure
+from .sensor import SensorCavityPressure
+from .solid import Hex20Solid
+from .springs import ElasticSupport
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One candidate extension: ``name``, what physics it adds, its parameters (registry entries)."""
+
+    name: str
+    description: str
+    parameters: tuple[ParameterInfo, ...]
+
+    def null_values(self) -> dict[str, float]:
+        """Parameter values at which the candidate vanishes (base-model parameters have none)."""
+        return {p.name: p.null for p in self.parameters if p.null is not None}
+
+
+CANDIDATES = {
+    c.name: c
+    for c in (
+        Candidate("mooney_rivlin", "second invariant of the body's strain energy (Mooney-Rivlin)",
+                  (MooneyRivlin.parameters["C01"],)),
+        Candidate("compressibility", "finite bulk modulus of the body, D1 free", (NeoHookean.parameters["D1"],)),
+        Candidate("gravity", "self-weight of the body", (Gravity.parameters["density"],)),
+        Candidate("compliant_base", "distributed springs under the base instead of a clamp",
+                  (ElasticSupport.parameters["c_n"], ElasticSupport.parameters["c_t"])),
+        Candidate("fiber_stiffness", "Young's modulus of the fibers (a base-model parameter, refitted)",
+                  (ParameterInfo("E_fiber", "MPa", None, 0.0, math.inf,
+                                 "fiber Young's modulus (31 GPa in the paper); rigid fibers as E_fiber -> inf",
+                                 low_inclusive=False),)),
+        Candidate("pressure_sensor", "gain and offset of the pressure sensor",
+                  (SensorCavityPressure.parameters["pressure_gain"], SensorCavityPressure.parameters["pressure_offset"])),
+    )
+}
+
+
+def _unfinalized(model: Model) -> None:
+    if model.dofmap is not None:
+        raise RuntimeError("the model is finalized; swap terms before the first solve or evaluation")
+
+
+def with_material(model: Model, material: Material) -> Model:
+    """Give every solid body of an unfinalized model ``material`` (same elements, formulation and
+    integration); returns the model."""
+    _unfinalized(model)
+    for k, t in enumerate(model.terms):
+        if isinstance(t, Hex20Solid):
+            model.terms[k] = Hex20Solid(model.mesh, material, t.formulation, t.element_ids, t.integration,
+                                        dtype=model.dtype)
+    return model
+
+
+def with_pressure_sensor(model: Model, gain: str = "pressure_gain", offset: str = "pressure_offset") -> Model:
+    """Replace every ``CavityPressure`` of an unfinalized model by a ``SensorCavityPressure`` on the same
+    cavity, recorded-pressure parameter and face rule; returns the model."""
+    _unfinalized(model)
+    for k, t in enumerate(model.terms):
+        if type(t) is CavityPressure:
+            rule = round(t.w.numel() ** 0.5)
+            model.terms[k] = SensorCavityPressure(model.mesh, t.face_set, t.pressure, gain, offset, rule,
+                                                  dtype=model.dtype)
+    return model
