@@ -31,6 +31,7 @@ from .recordings import COLUMNS, MAX_LINE_BYTES, MAX_ROWS, RecordingError
 _CHUNK = 1 << 16  # rows converted to an array at a time, so memory grows by arrays, not Python floats
 _DELIMITERS = (",", ";", "\t")
 _PER_FRAME, _PER_POINT = ("time", "pressure"), ("X", "Y", "Z")
+_BLANK = " \t"  # str.strip() alone would also drop control characters such as \x1c around a number
 
 
 def _raise_limit(where, what: str, name: str, value: int):
@@ -72,7 +73,7 @@ def _header(first: str) -> tuple[str, list[str]]:
     """The delimiter under which the first line names the most columns (ties: comma), and the names."""
     best = None
     for d in _DELIMITERS:
-        names = [h.strip() for h in next(csv.reader([first], delimiter=d), [])]
+        names = [h.strip(_BLANK) for h in next(csv.reader([first], delimiter=d), [])]
         score = sum(c in names for c in COLUMNS)
         if best is None or score > best[0]:
             best = (score, d, names)
@@ -91,8 +92,8 @@ def _csv_error(path: Path, line: int, exc: csv.Error) -> RecordingError:
 
 def _number(s: str) -> float:
     """A field as a float: empty or NaN = missing; ASCII decimal only (Python's float() would also
-    take '1_000' and non-ASCII digits, which no camera software writes)."""
-    s = s.strip()
+    take '1_000' and non-ASCII digits, which no camera software writes); blanks are spaces and tabs."""
+    s = s.strip(_BLANK)
     if not s:
         return np.nan
     if not s.isascii() or "_" in s:
@@ -123,7 +124,7 @@ def table_from_csv(path: Path, max_line_bytes: int = MAX_LINE_BYTES, max_rows: i
             reader = csv.reader(lines, delimiter=delimiter)
             chunks, rows, n_rows = [], [], 0
             for row in reader:
-                if not row or all(not v.strip() for v in row):
+                if not row or all(not v.strip(_BLANK) for v in row):
                     continue
                 line = reader.line_num + 1  # the header was read apart
                 if len(row) != len(header):
