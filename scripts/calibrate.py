@@ -93,4 +93,6 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    from torchfra.cli import run
+
+    run(main)

@@ -212,4 +212,6 @@ def _clean(x):
 
 
 if __name__ == "__main__":
-    main()
+    from torchfra.cli import run
+
+    run(main)

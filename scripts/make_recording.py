@@ -45,6 +45,14 @@ def main(argv=None) -> Path:
     p.add_argument("--out", default="runs/recordings/recording.csv", help=".csv or .npz")
     p.add_argument("--threads", type=int, default=1)
     a = p.parse_args(argv)
+    if Path(a.out).suffix.lower() not in (".csv", ".npz"):
+        p.error(f"--out must end in .csv or .npz, got {a.out!r}")
+    if a.points != "nodes":
+        try:
+            float(a.points)
+        except ValueError:
+            p.error(f"--points must be 'nodes' or a grid spacing in mm, got {a.points!r}")
+    Path(a.out).parent.mkdir(parents=True, exist_ok=True)  # a bad folder fails now, not after the FE solves
     torch.set_num_threads(a.threads)
     torch.set_default_dtype(torch.float64)
     times, pressure = pressure_trace(a.frames, a.pressure, a.cycles)
@@ -55,4 +63,6 @@ def main(argv=None) -> Path:
 
 
 if __name__ == "__main__":
-    main()
+    from torchfra.cli import run
+
+    run(main)

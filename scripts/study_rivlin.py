@@ -37,7 +37,10 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     A, B, C10 = args.inner_radius, args.outer_radius, args.C10
     P = pressure_for_inner_radius(args.a_over_A * A, A, B, C10)
-    meshes = [tuple(int(v) for v in m.split(",")) for m in args.meshes]
+    try:
+        meshes = [tuple(int(v) for v in m.split(",")) for m in args.meshes]
+    except ValueError:
+        ap.error(f"--meshes takes divisions like 1,2,1 (n_radial,n_angular,n_axial), got {' '.join(args.meshes)}")
     results = refinement_study(A, B, C10, P, meshes, K_over_mu=tuple(args.K_over_mu))
 
     rows = [
@@ -68,4 +71,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from torchfra.cli import run
+
+    run(main)

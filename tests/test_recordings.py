@@ -1,5 +1,10 @@
 """Recordings: the CSV/NPZ contract of DESIGN §6, masking of missing values, errors that name the
 culprit, matching to the visible face, and frames tied to the model by their pressure."""
+import gzip
+import os
+import threading
+from pathlib import Path
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -86,3 +91,134 @@ def test_frames_follow_the_pressure_trace_including_unloading():
     rec.pressure[4] = 0.03
     with pytest.raises(RecordingError, match="frame 4 has pressure 0.03"):
         load_factors(rec, 0.022)
+
+
+# -- files that are not recordings, and limits ---------------------------------------------------------
+
+BODY = "0,0.5,0.01,1,8,0,40,-1.5,0.2\n0,0.5,0.01,2,8,1,40,,0.1\n1,1.0,0.02,1,8,0,40,-3,0.4\n"
+
+
+def _fifo(path):
+    """A named pipe: opening it blocks until a writer comes, so the reader must refuse it from its
+    stat alone. A writer thread comes anyway, so that a reader that opens it fails instead of hanging."""
+    os.mkfifo(path)
+
+    def writer():
+        with open(path, "wb"):
+            pass
+
+    threading.Thread(target=writer, daemon=True).start()
+
+
+@pytest.mark.parametrize("name, make, match", [
+    ("dir.csv", lambda p: p.mkdir(), "is a folder, not a recording"),
+    # a device is refused from its stat (/dev/zero would be read forever); /dev/null keeps a
+    # regression from eating memory here, as it reads empty
+    ("null.csv", lambda p: p.symlink_to("/dev/null"), "not a regular file"),
+    ("pipe.csv", _fifo, "not a regular file"),
+    ("gz.csv", lambda p: p.write_bytes(gzip.compress((HEADER + BODY).encode())), "gzip-compressed; decompress"),
+    ("le.csv", lambda p: p.write_bytes((HEADER + BODY).encode("utf-16")), "the file is UTF-16; save it as UTF-8"),
+    ("be.csv", lambda p: p.write_bytes(b"\xfe\xff" + (HEADER + BODY).encode("utf-16-be")), "UTF-16; save it as UTF-8"),
+    ("nul.csv", lambda p: p.write_bytes((HEADER + BODY).encode() + b"\0\0\0"), "line 5: NUL bytes: the file is binary"),
+    ("latin1.csv", lambda p: p.write_bytes((HEADER + "0,0.5,0.01,1,8,0,40,1µ,1\n").encode("latin-1")),
+     "line 2: byte 0xb5 at column 22 is not UTF-8"),
+    ("zip.csv", lambda p: p.write_bytes(b"PK\x03\x04" + bytes(40)), "a zip archive"),
+    ("field.csv", lambda p: p.write_text(HEADER + "0,0.5,0.01,1,8,0,40," + "1" * 200_000 + ",1\n"),
+     "line 2: a field longer than 131072 characters"),
+    ("cr.csv", lambda p: p.write_bytes((HEADER + "0,0.5,0.01,1,8,0,40,1,1\r1,1,0.02,1,8,0,40,1,1\n").encode()),
+     "line 2: a carriage return inside a line"),
+    ("shift.csv", lambda p: p.write_text(HEADER + "0,0.5,0.01,1,8,0,40,-1.5,,0.2\n"), "line 2: 10 fields, but the header has 9"),
+    ("dup.csv", lambda p: p.write_text(HEADER.replace("\n", ",uy\n") + "0,0.5,0.01,1,8,0,40,1,1,2\n"),
+     "column\\(s\\) uy appear more than once in the header"),
+    ("inf.csv", lambda p: p.write_text(HEADER + "0,0.5,0.01,1,8,0,40,inf,1\n"), "uy = inf; a missing value is empty or NaN"),
+    ("under.csv", lambda p: p.write_text(HEADER + "0,0.5,0.01,1,8,0,40,1_5,1\n"), "line 2: .*not a decimal number: '1_5'"),
+    ("decimal_comma.csv", lambda p: p.write_text((HEADER + BODY).replace(",", ";").replace("0.5", "0,5")),
+     "line 2: .*a decimal comma\\? write 0.5, not 0,5"),
+    ("no_obs.csv", lambda p: p.write_text(HEADER + "0,0.5,0.01,1,8,0,40,,\n1,1,0.02,1,8,0,40,nan,NaN\n"),
+     "no observed displacements"),
+    ("text.npz", lambda p: p.write_text(HEADER + BODY), "not an NPZ \\(zip\\) archive"),
+    ("empty.npz", lambda p: p.write_bytes(b""), "not an NPZ \\(zip\\) archive \\(the file is empty\\)"),
+    ("array.npz", lambda p: np.save(open(p, "wb"), np.zeros(3)), "not an NPZ \\(zip\\) archive"),
+])
+def test_what_is_not_a_recording_is_named(tmp_path, name, make, match):
+    if name == "null.csv" and not Path("/dev/null").exists():
+        pytest.skip("no /dev/null")
+    path = tmp_path / name
+    make(path)
+    try:
+        with pytest.raises(RecordingError, match=match) as err:
+            read_recording(path)
+    finally:
+        if name == "pipe.csv":
+            os.close(os.open(path, os.O_RDONLY | os.O_NONBLOCK))  # lets the writer thread finish
+    assert "allow_pickle" not in str(err.value)
+    assert str(path) in str(err.value)
+
+
+@pytest.mark.parametrize("encode", [
+    lambda t: b"\xef\xbb\xbf" + t.encode(),  # a UTF-8 byte-order mark, as spreadsheets write it
+    lambda t: t.replace(",", ";").encode(),
+    lambda t: t.replace(",", "\t").encode(),
+    lambda t: t.replace("\n", "\r\n").encode(),
+])
+def test_bom_semicolons_tabs_and_crlf_read_like_plain_csv(tmp_path, encode):
+    (tmp_path / "plain.csv").write_text(HEADER + BODY)
+    (tmp_path / "other.csv").write_bytes(encode(HEADER + BODY))
+    a, b = read_recording(tmp_path / "plain.csv"), read_recording(tmp_path / "other.csv")
+    assert np.array_equal(a.Z, b.Z, equal_nan=True) and np.array_equal(a.X, b.X) and np.array_equal(a.times, b.times)
+
+
+def test_limits_name_the_keyword_that_raises_them(tmp_path):
+    path = tmp_path / "r.csv"
+    path.write_text(HEADER + BODY)
+    for kw, match in (({"max_rows": 2}, r"more than 2 rows \(limit max_rows = 2\).*max_rows=\.\.\."),
+                      ({"max_line_bytes": 30}, r"line 1: a line longer than 30 bytes.*max_line_bytes=\.\.\."),
+                      ({"max_frame_points": 3}, r"2 frames x 2 points = 4 .*max_frame_points=\.\.\.")):
+        with pytest.raises(RecordingError, match=match):
+            read_recording(path, **kw)
+    assert read_recording(path, max_rows=3, max_line_bytes=len(HEADER) - 1, max_frame_points=4).Z.shape == (2, 2, 2)
+    write_recording(tmp_path / "r.npz", read_recording(path))
+    with pytest.raises(RecordingError, match=r"array frame has 4 entries \(limit max_rows = 2\)"):
+        read_recording(tmp_path / "r.npz", max_rows=2)
+
+
+def _grid(K=3, P=2):
+    return {"frame": np.arange(K), "point_id": np.array([4, 7][:P]), "time": np.linspace(0.1, 1, K),
+            "pressure": np.linspace(0.01, 0.02, K), "X": np.full(P, 8.0), "Y": np.arange(P, dtype=float),
+            "Z": np.full(P, 40.0), "uy": np.arange(K * P, dtype=float).reshape(K, P), "uz": -np.ones((K, P))}
+
+
+def test_npz_grid_layout_reads_frames_by_points(tmp_path):
+    """frame (K,) and point_id (P,) are the axes of (K, P) displacements: the same recording as
+    the long layout, entry (k, p) at frame k, point p."""
+    g = _grid()
+    np.savez(tmp_path / "g.npz", **g)
+    rec = read_recording(tmp_path / "g.npz")
+    assert np.array_equal(rec.Z[..., 0], g["uy"]) and np.array_equal(rec.point_ids, [4, 7])
+    assert np.array_equal(rec.times, g["time"]) and np.array_equal(rec.X[:, 1], g["Y"])
+
+
+@pytest.mark.parametrize("change, match", [
+    ({"uy": np.zeros((2, 3))}, r"array uy has shape \(2, 3\), points x frames; .* must be frames x points, \(3, 2\): "
+                               r"store uy.T"),
+    ({"time": np.zeros((2, 3))}, r"array time has shape \(2, 3\), points x frames"),
+    ({"uz": np.zeros((3, 2, 1))}, r"array uz has shape \(3, 2, 1\); .* must be frames x points, \(3, 2\)"),
+    ({"X": np.zeros(3)}, r"array X has shape \(3,\); .* \(3, 2\) or \(2,\)"),
+    ({"uy": np.zeros(6)}, r"array uy has shape \(6,\); .* must be frames x points, \(3, 2\)"),
+    ({"frame": np.zeros((3, 2)), "point_id": np.zeros((3, 2))}, r"arrays differ in shape"),
+    ({"uy": np.zeros((3, 2), dtype=complex)}, r"array uy has dtype complex128; store numbers"),
+    ({"pressure": np.array(["a", "b", "c"])}, r"array pressure has dtype <U1; store numbers"),
+    ({"frame": np.array([0, 1, 2 ** 60])}, r"frame = .*must be an integer of magnitude below 2\^53"),
+])
+def test_npz_arrays_are_never_reshaped_silently(tmp_path, change, match):
+    np.savez(tmp_path / "g.npz", **{**_grid(), **change})
+    with pytest.raises(RecordingError, match=match):
+        read_recording(tmp_path / "g.npz")
+
+
+def test_damaged_npz_is_named(tmp_path):
+    np.savez_compressed(tmp_path / "g.npz", **_grid())
+    data = bytearray((tmp_path / "g.npz").read_bytes())
+    (tmp_path / "cut.npz").write_bytes(data[: len(data) // 2])
+    with pytest.raises(RecordingError, match="cut.npz: a damaged NPZ archive"):
+        read_recording(tmp_path / "cut.npz")

@@ -12,7 +12,10 @@ from __future__ import annotations
 
 import hashlib
 import json
+import pickle
+import re
 import time
+import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -184,11 +187,11 @@ class RestartForecaster:
         self.newton_iterations = 0
 
     def state(self) -> dict:
-        return {"x": self.x, "lam_now": self.lam_now, "fe_solves": self.fe_solves,
+        return {"x": self.x, "lam_now": torch.as_tensor(self.lam_now), "fe_solves": self.fe_solves,
                 "newton_iterations": self.newton_iterations}
 
     def load_state(self, s: dict) -> None:
-        self.x, self.lam_now = s["x"], s["lam_now"]
+        self.x, self.lam_now = s["x"], s["lam_now"].numpy()
         self.fe_solves, self.newton_iterations = s["fe_solves"], s["newton_iterations"]
 
     def __call__(self, Q: torch.Tensor, k: int) -> torch.Tensor:
@@ -240,11 +243,11 @@ def _load_recording(config: CalibrationConfig, run_dir: Path, progress: bool):
     made_by = {k: getattr(config, k) for k in ("truth_c10", "noise", "noise_seed", "points", "frames", "pressure",
                                                "resolution")}
     if path.exists() and clean_path.exists():
-        saved = json.loads(str(np.load(clean_path)["made_by"]))
+        saved = json.loads(str(np.load(clean_path, allow_pickle=False)["made_by"]))
         if saved != json.loads(json.dumps(made_by)):
             raise RecordingError(f"{path} was made with other settings ({saved}); choose another --name, or "
                                  "delete the run folder's recording files to make a new one")
-        return read_recording(path), np.load(clean_path)["clean"], config.truth_c10
+        return read_recording(path), np.load(clean_path, allow_pickle=False)["clean"], config.truth_c10
     times = frame_times(config.frames)
     rec, clean = synthetic_recording(config.truth_c10, config.resolution, config.points, config.noise,
                                      config.noise_seed, times, config.pressure * times, progress=progress)
@@ -252,6 +255,34 @@ def _load_recording(config: CalibrationConfig, run_dir: Path, progress: bool):
     np.savez(clean_path.with_suffix(".tmp.npz"), clean=clean, made_by=json.dumps(made_by))
     clean_path.with_suffix(".tmp.npz").replace(clean_path)  # written last: marks the pair complete
     return read_recording(path), clean, config.truth_c10
+
+
+class CheckpointError(ValueError):
+    """A restart checkpoint that cannot be read safely; the message names the file and the way out."""
+
+
+def read_restart_checkpoint(path: Path) -> dict:
+    """The restart filter's checkpoint, read with ``weights_only=True``: it holds tensors, numbers,
+    strings and plain containers only, so a file holding anything else (a planted pickle, a
+    checkpoint of an older version) is refused before any of it runs."""
+    why = None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # torch warns about pickle protocols before refusing
+            saved = torch.load(path, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        found = re.search(r"Unsupported [^.\n]*", str(exc))
+        why = f"it holds more than tensors and plain data: {found.group(0) if found else 'not a torch checkpoint'}"
+    except (RuntimeError, EOFError, ValueError) as exc:
+        why = f"it is empty or damaged: {type(exc).__name__}"
+    else:
+        if (not isinstance(saved, dict) or not {"config", "recording", "result", "generator", "forecaster"} <= set(saved)
+                or not isinstance(saved["config"], dict) or not isinstance(saved["result"], dict)):
+            why = "it lacks the restart filter's entries"
+    if why is not None:
+        raise CheckpointError(f"{path}: not a restart checkpoint this version reads safely ({why}); delete it to "
+                              "start the restart filter over")
+    return saved
 
 
 RESTART_KEYS = ("members", "resolution", "seed", "recording", "truth_c10", "noise", "noise_seed", "points", "frames",
@@ -269,18 +300,18 @@ def _restart(config, run_dir, rec, lam, Q0, Z, r, tracked, progress):
     gen = torch.Generator().manual_seed(config.filter_seed + 100)
     result = None
     if ckpt.exists():
-        saved = torch.load(ckpt, weights_only=False)
+        saved = read_restart_checkpoint(ckpt)
         now = config_dict(config)
         if (all(saved["config"].get(k) == now[k] for k in RESTART_KEYS) and saved.get("recording") == recording_digest(rec)
-                and torch.equal(saved["result"].Q[0], Q0)):
-            result = saved["result"]
+                and torch.equal(saved["result"]["Q"][0], Q0)):
+            result = FilterResult.from_dict(saved["result"])
             gen.set_state(saved["generator"])
             fc.load_state(saved["forecaster"])
 
     def checkpoint(res: FilterResult, g: torch.Generator) -> None:
         res.fe_solves, res.newton_iterations = fc.fe_solves, fc.newton_iterations
         tmp = ckpt.with_suffix(".tmp")
-        torch.save({"config": config_dict(config), "recording": recording_digest(rec), "result": res,
+        torch.save({"config": config_dict(config), "recording": recording_digest(rec), "result": res.to_dict(),
                     "generator": g.get_state(),
                     "forecaster": fc.state()}, tmp)
         tmp.replace(ckpt)
@@ -371,8 +402,9 @@ def _direct_fe_check(config, run_dir: Path, out: dict, rec: Recording, lam, trac
     k_top = int(np.argmax(lam))  # the frame of highest pressure (a cycled trace ends unloaded)
     q = np.array([float(out["filters"][n]["result"].Q[-1][:, 0].mean()) for n in names])
     path = run_dir / "direct_fe_check.npz"
-    if path.exists() and np.allclose(np.load(path)["q"], q, rtol=0, atol=1e-12) and int(np.load(path)["k"]) == k_top:
-        fe = np.load(path)["fe"]
+    saved = dict(np.load(path, allow_pickle=False)) if path.exists() else None
+    if saved is not None and np.allclose(saved["q"], q, rtol=0, atol=1e-12) and int(saved["k"]) == k_top:
+        fe = saved["fe"]
     else:
         solver = ActuatorSolver(config.resolution, rec, forward_config(config))
         sol = fem.solve(solver.model, solver.params(np.exp(q)), [float(lam[k_top])], solver.options())

@@ -7,23 +7,32 @@ CSV, one row per point per frame::
 time normalized (or in s), pressure in MPa, reference coordinates X, Y, Z and displacements uy, uz
 in mm. An empty or NaN ``uy``/``uz`` is a missing observation; a point absent from a frame is
 missing too. Missing values are masked (NaN in ``Recording.Z``), never zero-filled. The NPZ form holds
-the same names as arrays.
+the same names as arrays (1-D, or frames x points, see :mod:`torchfra.recording_files`).
 
 Validation refuses, naming the culprit: an empty file, missing columns, a frame without a finite
 time or pressure or with two different times, duplicated ``(frame, point_id)`` rows, times that do
 not increase with the frame number, a point whose reference coordinates change between frames, and
 displacements larger than ``max_displacement`` (default 1000 mm; a unit mix-up such as metres vs
-mm shows up as values off by 1000).
+mm shows up as values off by 1000), an infinite value anywhere, and a recording without a single
+observed displacement. What is not a recording file at all (a folder, a device, a compressed,
+binary or UTF-16 file, an object array) is refused before parsing, see :mod:`torchfra.recording_files`;
+limits on the size of what is read are keyword arguments of :func:`read_recording`.
 """
 from __future__ import annotations
 
 import csv
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 COLUMNS = ("frame", "time", "pressure", "point_id", "X", "Y", "Z", "uy", "uz")
+# Limits on what a reader takes in (keyword arguments of read_recording raise them): a CSV line, data
+# rows (or NPZ array entries), frames x points of the dense (K, P, 2) array (320 MB of float64).
+MAX_LINE_BYTES = 1 << 20
+MAX_ROWS = 5_000_000
+MAX_FRAME_POINTS = 20_000_000
 
 
 class RecordingError(ValueError):
@@ -60,55 +69,21 @@ class Recording:
         return len(self.point_ids)
 
 
-def _table_from_csv(path: Path) -> dict[str, np.ndarray]:
-    with open(path, newline="") as f:
-        reader = csv.reader(f)
-        header = next(reader, None)
-        if header is None:
-            raise RecordingError(f"{path}: the file is empty; a recording needs the header "
-                                 f"{','.join(COLUMNS)} and one row per point per frame")
-        header = [h.strip() for h in header]
-        missing = [c for c in COLUMNS if c not in header]
-        if missing:
-            raise RecordingError(f"{path}: missing column(s) {', '.join(missing)}; the header must name "
-                                 f"{','.join(COLUMNS)} (got {','.join(header)})")
-        col = {c: header.index(c) for c in COLUMNS}
-        rows = []
-        for line, row in enumerate(reader, start=2):
-            if not row or all(not v.strip() for v in row):
-                continue
-            try:
-                rows.append([float(row[col[c]]) if row[col[c]].strip() else np.nan for c in COLUMNS])
-            except (ValueError, IndexError) as exc:
-                raise RecordingError(f"{path}, line {line}: cannot read {row!r} as numbers ({exc})") from exc
-    if not rows:
-        raise RecordingError(f"{path}: the file has a header but no rows")
-    table = np.asarray(rows, dtype=np.float64)
-    return {c: table[:, i] for i, c in enumerate(COLUMNS)}
-
-
-def _table_from_npz(path: Path) -> dict[str, np.ndarray]:
-    with np.load(path) as data:
-        missing = [c for c in COLUMNS if c not in data.files]
-        if missing:
-            raise RecordingError(f"{path}: missing array(s) {', '.join(missing)}; an NPZ recording holds "
-                                 f"the arrays {', '.join(COLUMNS)}, one entry per point per frame")
-        table = {c: np.asarray(data[c], dtype=np.float64).reshape(-1) for c in COLUMNS}
-    n = {c: v.size for c, v in table.items()}
-    if len(set(n.values())) != 1:
-        raise RecordingError(f"{path}: arrays differ in length {n}")
-    if next(iter(n.values())) == 0:
-        raise RecordingError(f"{path}: the recording is empty")
-    return table
-
-
-def from_table(t: dict[str, np.ndarray], source: str = "<memory>", max_displacement: float = 1000.0) -> Recording:
+def from_table(t: dict[str, np.ndarray], source: str = "<memory>", max_displacement: float = 1000.0,
+               max_frame_points: int = MAX_FRAME_POINTS) -> Recording:
     """Validate a long table (one entry per point per frame) and arrange it as frames x points."""
+    for c in COLUMNS:
+        bad = np.flatnonzero(np.isinf(t[c]))
+        if bad.size:
+            raise RecordingError(f"{source}: data row {bad[0] + 1} has {c} = {t[c][bad[0]]}; a missing value is "
+                                 "empty or NaN, never infinite")
     for c in ("frame", "point_id"):
         v = t[c]
-        bad = np.flatnonzero(~np.isfinite(v) | (v != np.round(v)))
+        # float64 holds every integer below 2^53 exactly; above it distinct ids could merge
+        bad = np.flatnonzero(~np.isfinite(v) | (v != np.round(v)) | (np.abs(v) >= 2.0 ** 53))
         if bad.size:
-            raise RecordingError(f"{source}: data row {bad[0] + 1} has {c} = {v[bad[0]]!r}; {c} must be an integer")
+            raise RecordingError(f"{source}: data row {bad[0] + 1} has {c} = {v[bad[0]]!r}; {c} must be an integer "
+                                 "of magnitude below 2^53")
     for c in ("X", "Y", "Z"):
         bad = np.flatnonzero(~np.isfinite(t[c]))
         if bad.size:
@@ -118,6 +93,10 @@ def from_table(t: dict[str, np.ndarray], source: str = "<memory>", max_displacem
     frames, fi = np.unique(frame, return_inverse=True)
     pids, pi = np.unique(pid, return_inverse=True)
     K, P = len(frames), len(pids)
+    if K * P > max_frame_points:
+        raise RecordingError(f"{source}: {K} frames x {P} points = {K * P} entries per displacement component, "
+                             f"more than the limit max_frame_points = {max_frame_points}; if the recording is "
+                             "right, raise the limit with read_recording(..., max_frame_points=...)")
     key = fi * P + pi
     uniq, counts = np.unique(key, return_counts=True)
     if np.any(counts > 1):
@@ -161,6 +140,9 @@ def from_table(t: dict[str, np.ndarray], source: str = "<memory>", max_displacem
                              f"(by {spread[bad[0]]:.3g} mm); X, Y, Z are the reference position")
     Z = np.full((K, P, 2), np.nan)
     Z[fi, pi, 0], Z[fi, pi, 1] = t["uy"], t["uz"]
+    if not np.isfinite(Z).any():
+        raise RecordingError(f"{source}: no observed displacements: every uy and uz is empty or NaN, so there is "
+                             "nothing to calibrate on")
     big = np.abs(np.nan_to_num(Z)) > max_displacement
     if big.any():
         k, p, c = np.argwhere(big)[0]
@@ -169,18 +151,32 @@ def from_table(t: dict[str, np.ndarray], source: str = "<memory>", max_displacem
     return Recording(frames, times, pressure, pids, X, Z, source)
 
 
-def read_recording(path, max_displacement: float = 1000.0) -> Recording:
-    """Read and validate a recording (``.csv`` or ``.npz``)."""
+def read_recording(path, max_displacement: float = 1000.0, *, max_line_bytes: int = MAX_LINE_BYTES,
+                   max_rows: int = MAX_ROWS, max_frame_points: int = MAX_FRAME_POINTS) -> Recording:
+    """Read and validate a recording (``.csv`` or ``.npz``).
+
+    Limits, refused with a message naming the keyword that raises them: ``max_line_bytes`` of a CSV
+    line, ``max_rows`` data rows (CSV) or entries of an array (NPZ), ``max_frame_points`` frames x
+    points."""
+    from . import recording_files as files
+
     path = Path(path)
-    if not path.exists():
-        raise RecordingError(f"{path}: no such recording")
+    try:
+        mode = path.stat().st_mode  # before opening: a FIFO would block, a device never end
+    except (FileNotFoundError, NotADirectoryError):
+        raise RecordingError(f"{path}: no such recording") from None
+    if stat.S_ISDIR(mode):
+        raise RecordingError(f"{path}: is a folder, not a recording; name the .csv or .npz file")
+    if not stat.S_ISREG(mode):
+        raise RecordingError(f"{path}: not a regular file (a device, pipe or socket); a recording is a .csv or "
+                             ".npz file")
     if path.suffix.lower() == ".npz":
-        table = _table_from_npz(path)
+        table = files.table_from_npz(path, max_rows)
     elif path.suffix.lower() == ".csv":
-        table = _table_from_csv(path)
+        table = files.table_from_csv(path, max_line_bytes, max_rows)
     else:
         raise RecordingError(f"{path}: unknown recording format {path.suffix!r}; use .csv or .npz")
-    return from_table(table, str(path), max_displacement)
+    return from_table(table, str(path), max_displacement, max_frame_points)
 
 
 def to_table(rec: Recording) -> dict[str, np.ndarray]:

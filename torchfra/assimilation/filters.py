@@ -14,7 +14,7 @@ from the ``torch.Generator`` passed in.
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -143,6 +143,18 @@ class FilterResult:
     @property
     def steps(self) -> int:
         return len(self.info)
+
+    def to_dict(self) -> dict:
+        """Tensors, numbers and lists only: a checkpoint that ``torch.load(weights_only=True)`` reads
+        without unpickling any class."""
+        return {"Q": list(self.Q), "info": [asdict(i) for i in self.info], "Y_tracked": list(self.Y_tracked),
+                "fe_solves": self.fe_solves, "newton_iterations": self.newton_iterations, "wall_s": self.wall_s}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "FilterResult":
+        return cls(Q=list(d["Q"]), info=[AnalysisInfo(**i) for i in d["info"]], Y_tracked=list(d["Y_tracked"]),
+                   fe_solves=int(d["fe_solves"]), newton_iterations=int(d["newton_iterations"]),
+                   wall_s=float(d["wall_s"]))
 
 
 def sequential_filter(

@@ -1,0 +1,58 @@
+"""How the scripts end: a user's mistake is one paragraph on stderr, not a traceback.
+
+``run(main)`` calls ``main()`` (which parses ``sys.argv``). A wrong input (``ValueError`` and with
+it the project's own errors: ``RecordingError``, ``ParameterError``, ``MeshError``,
+``GeometryError``, ``ObservationError``, ``CheckpointError``, and ``UnicodeDecodeError``;
+``KeyError``; ``OSError``: a missing file, a folder where a file belongs, no permission;
+``CalculixError``) is printed as ``error: <message>`` with exit status 2, the status argparse gives
+a wrong flag. Ctrl-C exits with 130 and says how to go on: runs resume from what they saved.
+``--debug`` anywhere on the command line (removed before ``main`` sees it) lets the exception
+through with its traceback; so does any other exception, which is a bug, not a wrong input.
+"""
+from __future__ import annotations
+
+import sys
+from typing import Callable, NoReturn
+
+EXIT_USER_ERROR = 2
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports for Ctrl-C
+DEBUG_FLAG = "--debug"
+
+
+def user_errors() -> tuple[type[BaseException], ...]:
+    errors: tuple[type[BaseException], ...] = (ValueError, KeyError, OSError)
+    abaqus = sys.modules.get("torchfra.io.abaqus")  # only a script that ran CalculiX can meet its error
+    return errors + (abaqus.CalculixError,) if abaqus is not None else errors
+
+
+def message(exc: BaseException) -> str:
+    """The exception as one paragraph: no blank lines, file errors as '<file>: <reason>'."""
+    if isinstance(exc, OSError) and exc.strerror:
+        files = [str(f) for f in (exc.filename, exc.filename2) if f is not None]
+        text = f"{' -> '.join(files)}: {exc.strerror}" if files else exc.strerror
+    elif isinstance(exc, KeyError) and len(exc.args) == 1:
+        text = f"no entry {exc.args[0]!r}"
+    else:
+        text = str(exc)
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return "\n".join(lines) or type(exc).__name__
+
+
+def run(main: Callable[[], object]) -> NoReturn:
+    """Run a script's ``main`` and exit: 0, or 2 on a wrong input, or 130 when interrupted."""
+    debug = DEBUG_FLAG in sys.argv[1:]
+    if debug:
+        sys.argv[1:] = [a for a in sys.argv[1:] if a != DEBUG_FLAG]
+    try:
+        main()
+    except KeyboardInterrupt:
+        if debug:
+            raise
+        print("\ninterrupted; rerun the same command to resume", file=sys.stderr)
+        sys.exit(EXIT_INTERRUPTED)
+    except user_errors() as exc:
+        if debug:
+            raise
+        print(f"error: {message(exc)}\n(run with {DEBUG_FLAG} for the traceback)", file=sys.stderr)
+        sys.exit(EXIT_USER_ERROR)
+    sys.exit(0)
