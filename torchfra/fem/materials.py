@@ -127,7 +127,23 @@ class Material:
         return PointDerivatives(psi, P, GaussPointTangent(dense=A), Fp)
 
 
-class NeoHookean(Material):
+class _PerturbedLagrangeVolume(Material):
+    """The volumetric part ``p (J - 1) - p^2 / (2K)``, ``K = 2 / D1``, shared by the hyperelastic
+    bodies: its pressure coefficients and gradient in closed form (``fast``), else derived."""
+
+    fast: bool = True
+
+    def pressure_coefficients(self, F, prm):
+        if not self.fast:
+            return super().pressure_coefficients(F, prm)
+        J = det3(F)
+        return J - 1.0, (-0.5 * prm["D1"]).expand_as(J)
+
+    def pressure_gradient(self, F, p, prm):
+        return cofactor(F) if self.fast else super().pressure_gradient(F, p, prm)
+
+
+class NeoHookean(_PerturbedLagrangeVolume):
     r"""Abaqus Neo-Hookean in the perturbed-Lagrangian mixed form (paper Eq. 1).
 
     .. math::
@@ -164,14 +180,6 @@ class NeoHookean(Material):
         K = 2.0 / prm["D1"]
         return prm["C10"] * (I1bar - 3.0) + p * (J - 1.0) - p**2 / (2.0 * K)
 
-    def pressure_coefficients(self, F, prm):
-        if not self.fast:
-            return super().pressure_coefficients(F, prm)
-        J = det3(F)
-        return J - 1.0, (-0.5 * prm["D1"]).expand_as(J)
-
-    def pressure_gradient(self, F, p, prm):
-        return cofactor(F) if self.fast else super().pressure_gradient(F, p, prm)
 
     def derivatives(self, F, p, prm, with_energy: bool = False) -> PointDerivatives:
         if not self.fast:
@@ -196,7 +204,7 @@ class NeoHookean(Material):
         return PointDerivatives(psi, P, A, cof)
 
 
-class MooneyRivlin(Material):
+class MooneyRivlin(_PerturbedLagrangeVolume):
     r"""Abaqus Mooney-Rivlin in the perturbed-Lagrangian mixed form (second invariant candidate).
 
     .. math::
@@ -242,11 +250,3 @@ class MooneyRivlin(Material):
         return (prm["C10"] * (J ** (-2.0 / 3.0) * I1 - 3.0) + prm["C01"] * (J ** (-4.0 / 3.0) * I2 - 3.0)
                 + p * (J - 1.0) - p**2 / (2.0 * K))
 
-    def pressure_coefficients(self, F, prm):
-        if not self.fast:
-            return super().pressure_coefficients(F, prm)
-        J = det3(F)
-        return J - 1.0, (-0.5 * prm["D1"]).expand_as(J)
-
-    def pressure_gradient(self, F, p, prm):
-        return cofactor(F) if self.fast else super().pressure_gradient(F, p, prm)
