@@ -39,12 +39,13 @@ def message(exc: BaseException) -> str:
 
 
 def run(main: Callable[[], object]) -> NoReturn:
-    """Run a script's ``main`` and exit: 0, or 2 on a wrong input, or 130 when interrupted."""
+    """Run a script's ``main`` and exit: 0 (or the exit status ``main`` returns as an int), 2 on a
+    wrong input, 130 when interrupted."""
     debug = DEBUG_FLAG in sys.argv[1:]
     if debug:
         sys.argv[1:] = [a for a in sys.argv[1:] if a != DEBUG_FLAG]
     try:
-        main()
+        result = main()
     except KeyboardInterrupt:
         if debug:
             raise
@@ -55,4 +56,4 @@ def run(main: Callable[[], object]) -> NoReturn:
             raise
         print(f"error: {message(exc)}\n(run with {DEBUG_FLAG} for the traceback)", file=sys.stderr)
         sys.exit(EXIT_USER_ERROR)
-    sys.exit(0)
+    sys.exit(result if isinstance(result, int) and not isinstance(result, bool) else 0)
