@@ -141,8 +141,7 @@ def _fifo(path):
     ("array.npz", lambda p: np.save(open(p, "wb"), np.zeros(3)), "not an NPZ \\(zip\\) archive"),
 ])
 def test_what_is_not_a_recording_is_named(tmp_path, name, make, match):
-    if name == "null.csv" and not Path("/dev/null").exists():
-        pytest.skip("no /dev/null")
+    assert name != "null.csv" or Path("/dev/null").exists()  # the device case needs a POSIX system
     path = tmp_path / name
     make(path)
     try:
