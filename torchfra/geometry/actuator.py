@@ -401,11 +401,19 @@ def element_sets(geom: ActuatorGeometry, mesh: Mesh) -> dict[str, np.ndarray]:
 
 
 def build_actuator_model(geom: ActuatorGeometry | None = None, formulation: str = "hybrid",
-                         elements_per_turn: int | None = None, integration: str = "full"):
+                         elements_per_turn: int | None = None, integration: str = "full",
+                         material=None, base: str = "clamp", gravity=None, fiber_modulus="E_fiber"):
     """The paper's actuator model (§2, §4): Neo-Hookean Hex20 body, embedded Line3 fibers, clamped
     base, rigid flat top, conservative pressure ``P`` in the closed cavity.
 
     Parameters of the model: ``C10``, ``D1`` (body), ``E_fiber`` (fibers), ``P`` (cavity pressure).
+
+    Candidate physics (DESIGN §1.4) switch on here, each at its null exactly the paper's model:
+    ``material`` (default ``NeoHookean()``; e.g. ``MooneyRivlin()`` adds ``C01``), ``base="compliant"``
+    (``ElasticSupport`` springs ``c_n``, ``c_t`` under the base instead of the clamp), ``gravity`` (a
+    direction vector: self-weight with parameter ``density``), ``fiber_modulus`` (the fibers' modulus
+    parameter name, or a callable ``element centroids (m, 3) -> names (m,)`` to give fiber segments
+    their own moduli, e.g. a debonded stretch).
     ``integration="full"`` (3x3x3, the C3D20H analogue) by default: with the paper's reduced 2x2x2
     rule the fiber-free ring next to the pressurized cavity has a spurious mode that the cavity
     pressure's load stiffness drives negative (resolution 2 stopped at 52 % load: three negative
@@ -422,15 +430,24 @@ def build_actuator_model(geom: ActuatorGeometry | None = None, formulation: str 
     geom = (geom or ActuatorGeometry()).validate()
     mesh = actuator_mesh(geom)
     model = fem.Model(mesh)
-    model.add(fem.Hex20Solid(mesh, fem.NeoHookean(), formulation, integration=integration))
+    if base not in ("clamp", "compliant"):
+        raise ValueError(f"base must be 'clamp' or 'compliant', got {base!r}")
+    model.add(fem.Hex20Solid(mesh, material or fem.NeoHookean(), formulation, integration=integration))
     X_fiber, conn = fiber_mesh(geom, elements_per_turn)
     hosts, xi = locate_points(mesh, X_fiber)
     N, _ = hex20_shape(xi)
     fiber_nodes = model.add_nodes(X_fiber)
-    model.add(fem.Truss(model.X, fiber_nodes[conn], area=geom.fiber_area, modulus="E_fiber"))
+    if callable(fiber_modulus):
+        names = np.asarray(fiber_modulus(X_fiber[conn].mean(axis=1)))
+        for name in np.unique(names):
+            model.add(fem.Truss(model.X, fiber_nodes[conn[names == name]], area=geom.fiber_area, modulus=str(name)))
+    else:
+        model.add(fem.Truss(model.X, fiber_nodes[conn], area=geom.fiber_area, modulus=fiber_modulus))
     for k, node in enumerate(fiber_nodes):
         model.embed(int(node), mesh.elements[hosts[k]], N[k])
-    model.clamp("base")
+    fem.support_face(model, "base", compliant=base == "compliant")
+    if gravity is not None:
+        model.add(fem.Gravity(mesh, direction=gravity))
     model.rigid("top")
     model.add(fem.CavityPressure(mesh, "cavity", pressure="P"))
 
