@@ -1,0 +1,65 @@
+"""Find the physics the model left out: locate the mismatch between a recording and the calibrated
+base model, rank the candidate physics by score tests, refit the best and decide.
+
+    python scripts/diagnose.py my_dic.csv --noise 1.0 --name my_diag
+    python scripts/diagnose.py my_dic.csv --candidates gravity,compliant_base
+
+writes runs/<name>/: diagnosis.json, residual_map.png, residual_over_time.png, ranking.png,
+observed_vs_models.png, posterior_added.png (when a candidate is accepted), TensorBoard events,
+and solves/ (every FE solve, reused when the diagnosis is run again).
+"""
+import argparse
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import torch  # noqa: E402
+
+from torchfra.discovery import ALL_CANDIDATES, DiagnosisError, diagnose  # noqa: E402
+from torchfra.recordings import read_recording  # noqa: E402
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("recording", help="CSV/NPZ recording (torchfra format; scripts/import_dic.py converts DIC exports)")
+    p.add_argument("--noise", type=float, default=None, help="noise std (mm); default: estimated from the frames")
+    p.add_argument("--correlation", type=float, default=None,
+                   help="spatial noise correlation length (mm); 0 = independent; default: estimated")
+    p.add_argument("--candidates", default="all", help=f"all, or a comma list of: {', '.join(ALL_CANDIDATES)}")
+    p.add_argument("--name", default=None, help="run name (default: diagnose_<recording stem>)")
+    p.add_argument("--runs-dir", default="runs")
+    p.add_argument("--mesh", type=int, default=1, help="mesh resolution of the diagnosis model")
+    p.add_argument("--load-steps", type=int, default=10)
+    p.add_argument("--alpha", type=float, default=0.01, help="test level")
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (recorded)")
+    p.add_argument("--quiet", action="store_true")
+    a = p.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    cands = "all" if a.candidates == "all" else [c.strip() for c in a.candidates.split(",") if c.strip()]
+    if cands != "all":
+        bad = [c for c in cands if c not in ALL_CANDIDATES]
+        if bad:
+            raise DiagnosisError(f"--candidates: unknown candidate {bad[0]!r}; choose from {', '.join(ALL_CANDIDATES)}")
+    rec = read_recording(a.recording)
+    run_dir = Path(a.runs_dir) / (a.name or f"diagnose_{Path(a.recording).stem}")
+    reused = len(list((run_dir / "solves").glob("solve_*.npz"))) if (run_dir / "solves").exists() else 0
+    if reused and not a.quiet:
+        print(f"resuming {run_dir}: {reused} FE solves on disk are reused")
+    out = diagnose(rec, noise=a.noise, correlation=a.correlation, candidates=cands, run_dir=run_dir,
+                   resolution=a.mesh, load_steps=a.load_steps, alpha=a.alpha, progress=not a.quiet)
+    out["threads"] = a.threads
+    (run_dir / "diagnosis.json").write_text(json.dumps(out, indent=1, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
+    if not a.quiet:
+        g = out["mismatch_detected"]["global"]
+        print(f"mismatch: {'yes' if out['mismatch_detected']['detected'] else 'no'} (chi2 p = {g['p_value']:.3g}, "
+              f"RMS {g['rms']:.3f} noise units); decision: {out['decision']}; RMS after {out['fit_after']['rms']:.3f}; "
+              f"{out['cost']['solves']} FE solves, {out['cost']['seconds']:.0f} s -> {run_dir}")
+    return out
+
+
+if __name__ == "__main__":
+    from torchfra.cli import run
+
+    run(main)

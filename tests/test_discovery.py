@@ -1,0 +1,164 @@
+"""Missing-physics diagnosis: each statistical step on problems with a known answer, and the whole
+pipeline on small FE recordings.
+
+References: chi^2 calibration of the residual tests (false-alarm rate over seeds within the binomial
+band of the nominal level); the score (Lagrange-multiplier) statistic of a linear-Gaussian model equals
+the drop of the residual sum of squares when the candidate is fitted (exact for linear models);
+noise estimation against the generating sigma / correlation length.
+"""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchfra import fem
+from torchfra.calibration import synthetic_recording
+from torchfra.discovery import (DiagnosisError, NoiseModel, Whitener, consistency, diagnose, estimate_noise,
+                                locate, rank)
+from torchfra.physics import CANDIDATE_PARAMETERS
+from torchfra.recordings import Recording
+
+
+def grid_recording(K=30, n=12, spacing=2.0, Z=None):
+    y, z = np.meshgrid(np.arange(n) * spacing, np.arange(n) * spacing)
+    X = np.column_stack([np.zeros(n * n), y.ravel(), z.ravel()])
+    P = X.shape[0]
+    times = np.arange(1, K + 1) / K
+    return Recording(np.arange(K), times, 0.02 * times, np.arange(P), X,
+                     np.zeros((K, P, 2)) if Z is None else Z, "test")
+
+
+def correlated_noise(rec, sigma, ell, rng):
+    L = NoiseModel(sigma, ell).factor(rec.X)
+    return sigma * np.einsum("ij,kjc->kic", L, rng.standard_normal((rec.n_frames, rec.n_points, 2)))
+
+
+def test_false_alarm_rate_matches_the_level():
+    """Base-model recordings (pure noise around a fitted one-parameter linear model): the global test
+    rejects at the nominal rate (binomial 99.9 % band over 400 seeds)."""
+    rng = np.random.default_rng(0)
+    rec = grid_recording(K=10, n=6)
+    alpha, trials, hits = 0.05, 400, 0
+    shape = (rec.n_frames, rec.n_points, 2)
+    B = np.outer(rec.pressure, np.linspace(0.5, 2, rec.n_points))[..., None].repeat(2, -1)  # a sensitivity
+    for s in range(trials):
+        e = rng.standard_normal(shape)
+        b = B.ravel()
+        e = (e.ravel() - b * (b @ e.ravel()) / (b @ b)).reshape(shape)  # residual of the fitted parameter
+        hits += consistency(e, np.arange(rec.n_frames), 1)["p_value"] < alpha
+    lo, hi = [trials * alpha + k * math.sqrt(trials * alpha * (1 - alpha)) for k in (-3.3, 3.3)]
+    assert lo <= hits <= hi, hits
+
+
+def test_locate_finds_the_onset_and_the_cluster():
+    rng = np.random.default_rng(1)
+    rec = grid_recording(K=30, n=12)
+    E = rng.standard_normal((30, rec.n_points, 2))
+    near = np.linalg.norm(rec.X[:, 1:] - [4.0, 16.0], axis=1) < 4.5  # a patch of points
+    E[18:, near, 0] += 2.0  # from frame 18 on
+    out = locate(E, rec, np.arange(30), 1, 0.01, E, 1.0)
+    assert out["detected"]
+    assert 16 <= out["onset"]["frame"] <= 19, out["onset"]
+    c = out["clusters"][0]
+    assert abs(c["centre_mm"][1] - 4.0) < 1.5 and abs(c["centre_mm"][2] - 16.0) < 1.5, c
+    assert out["points_significant"] <= near.sum() + 3  # FDR 1 %: few false points
+
+
+def test_score_statistic_equals_the_fitted_drop_and_flags_confounding():
+    """Linear-Gaussian: e = S delta + noise after fitting the base parameter; the score statistic of a
+    candidate equals the RSS drop of refitting base + candidate (exact for linear models). A candidate
+    proportional to the base sensitivity is reported confounded with it."""
+    rng = np.random.default_rng(2)
+    K, P = 20, 40
+    shape = (K, P, 2)
+    b = rng.standard_normal(shape)
+    s1 = rng.standard_normal(shape)
+    names = ["C10", "C01", "density", "c_n", "c_t", "pressure_gain", "pressure_offset", "D1", "E_fiber"]
+    J = np.zeros(shape + (len(names),))
+    J[..., 0] = b
+    J[..., names.index("density")] = s1
+    J[..., names.index("pressure_gain")] = 3.0 * b + 1e-4 * rng.standard_normal(shape)  # confounded
+    for n in ("C01", "c_n", "c_t", "pressure_offset", "D1", "E_fiber"):
+        J[..., names.index(n)] = rng.standard_normal(shape)
+    y = 0.3 * s1 + rng.standard_normal(shape)
+    bf = b.ravel()
+    e = y.ravel() - bf * (bf @ y.ravel()) / (bf @ bf)
+    rows = rank(e.reshape(shape), J, names, ["C10"], sorted(CANDIDATE_PARAMETERS), np.arange(K), 0.01)
+    top = rows[0]
+    assert top["name"] == "gravity" and top["significant"], rows[0]
+    A = np.column_stack([bf, s1.ravel()])
+    rss_drop = float(e @ e) - float(np.sum((y.ravel() - A @ np.linalg.lstsq(A, y.ravel(), rcond=None)[0]) ** 2))
+    assert abs(top["score"] - rss_drop) < 1e-8 * rss_drop
+    sensor = next(r for r in rows if r["name"] == "pressure_sensor")
+    assert sensor["confounded_parameters"] == ["pressure_gain"] and sensor["confounded_with"] == ["C10"]
+
+
+@pytest.mark.parametrize("ell", [0.0, 3.0])
+def test_noise_estimate_recovers_sigma_and_correlation(ell):
+    rng = np.random.default_rng(3)
+    rec = grid_recording(K=40, n=14, spacing=1.0)
+    smooth = 5.0 * np.sin(rec.times)[:, None, None] * (1 + rec.X[:, 2] / 10)[None, :, None]
+    rec.Z = smooth + correlated_noise(rec, 0.7, ell, rng) if ell else smooth + 0.7 * rng.standard_normal(smooth.shape)
+    nm = estimate_noise(rec)
+    # correlated noise has fewer independent samples (~ (14 / 3)^2 patches per frame): a wider band
+    assert abs(nm.sigma / 0.7 - 1) < (0.1 if ell else 0.05), nm.sigma
+    if ell:
+        assert abs(nm.ell / ell - 1) < 0.2, nm.ell
+    else:
+        assert nm.ell == 0.0
+
+
+def test_whitener_makes_correlated_noise_standard():
+    rng = np.random.default_rng(4)
+    rec = grid_recording(K=400, n=10, spacing=1.0)  # 400 frames: sample correlations +- 0.05
+    E = correlated_noise(rec, 2.0, 2.5, rng)
+    w = Whitener(rec, NoiseModel(2.0, 2.5))(E)
+    assert abs(w.std() - 1) < 0.02
+    raw = E[:, :, 0] / 2.0
+    neighbour = np.corrcoef(raw[:, 0], raw[:, 1])[0, 1]
+    white = np.corrcoef(w[:, 0, 0], w[:, 1, 0])[0, 1]
+    assert neighbour > 0.8 and abs(white) < 0.2, (neighbour, white)
+
+
+def test_too_short_recordings_are_refused_with_what_is_missing():
+    rec = grid_recording(K=3, n=4)
+    with pytest.raises(DiagnosisError, match="3 frames; a diagnosis needs at least 4"):
+        diagnose(rec, noise=1.0, progress=False)
+    with pytest.raises(DiagnosisError, match="unknown candidate 'viscosity'"):
+        diagnose(grid_recording(K=8, n=4), noise=1.0, candidates=["viscosity"], progress=False)
+
+
+# -- the pipeline on FE recordings (resolution 1, 8 frames, a 4 mm DIC grid) -------------------------------
+
+@pytest.fixture(scope="module")
+def offset_recording():
+    """The base model with a pressure sensor reading 0.004 MPa low (true = recorded + 0.004 MPa):
+    a shift C10 cannot absorb."""
+    times = np.arange(1, 9) / 8
+    true = 0.02 * times
+    rec, clean = synthetic_recording(0.006, resolution=1, points="4.0", noise=0.0, times=times, pressure=true)
+    rng = np.random.default_rng(5)
+    rec.pressure = true - 0.004  # what the sensor wrote
+    rec.Z = clean + 0.3 * rng.standard_normal(clean.shape)
+    return rec
+
+
+def test_diagnosis_names_a_pressure_offset_and_resumes_without_solving(offset_recording, tmp_path, monkeypatch):
+    out = diagnose(offset_recording, noise=0.3, correlation=0.0, candidates=["pressure_sensor", "gravity"],
+                   run_dir=tmp_path / "d", progress=False)
+    assert out["mismatch_detected"]["detected"]
+    assert out["decision"].split("|")[0] == "pressure_sensor", (out["decision"], out["tried"])
+    ext = out["parameters"]["extended"]["pressure_offset"]
+    assert abs(ext["mean"] - 0.004) < 3 * ext["std"] + 2e-4, ext
+    assert out["fit_after"]["rms"] < 1.1 < out["fit_before"]["rms"]
+    assert (tmp_path / "d" / "residual_map.png").exists()
+
+    def no_solve(*a, **k):
+        raise AssertionError("a resumed diagnosis solved again")
+
+    monkeypatch.setattr(fem, "solve", no_solve)
+    monkeypatch.setattr("torchfra.physics.fem.solve", no_solve)
+    again = diagnose(offset_recording, noise=0.3, correlation=0.0, candidates=["pressure_sensor", "gravity"],
+                     run_dir=tmp_path / "d", progress=False)
+    assert again["decision"] == out["decision"]

@@ -1,0 +1,656 @@
+"""Finding the physics the model left out: locate the mismatch, rank the candidates, refit, decide.
+
+The diagnosis of a recording (DESIGN §1.4):
+
+1. **Calibrate** the base model (C10) by Gauss-Newton on the posterior with the exact
+   sensitivities (a Laplace posterior; verified against the exact grid posterior of the paper's
+   one-parameter experiment in tests/test_discovery.py).
+2. **Locate.** Whitened residuals over points x frames with the noise model (i.i.d. or spatially
+   correlated with a squared-exponential kernel; sigma and the correlation length are estimated
+   from frame-to-frame differences when not given). Global test: the residual sum of squares
+   against chi^2 with n - d degrees of freedom. Onset: per-frame chi^2 tests with
+   Benjamini-Hochberg control; the onset is the first frame after which the significant frames
+   are the majority. Space: per-point chi^2 tests (BH at ``alpha``) grouped into clusters of
+   neighbouring points.
+3. **Rank without refitting.** For each candidate, the whitened sensitivities of the observations
+   to its parameters at the calibrated point (candidates at their null values), projected off the
+   span of the calibrated parameters' sensitivities; the Lagrange-multiplier (score) statistic
+   ``e' U (U'U)^-1 U' e ~ chi^2_q`` under the base model, its p-value, and the fraction of the
+   excess residual it can explain. A candidate whose sensitivities lie (almost) in the span of the
+   base parameters' is reported ``confounded_with`` them (a pressure gain with C10: the scaling
+   law); candidates whose projected sensitivities nearly coincide form a group. The smallest
+   effect each candidate could show at this noise (80 % power at the test level) is reported.
+4. **Refit and decide.** The significant candidates in order of their score statistic are added
+   one at a time (then the best pair) and the extended parameters refitted by Gauss-Newton; an
+   extension is accepted only if its Laplace log evidence beats the base model's by more than
+   ``evidence_threshold`` (5: decisive on Jeffreys' scale), every added parameter is more than 3
+   posterior standard deviations from its null and inside its range, the residual returns to the
+   noise level (global test passes at ``alpha``, RMS within 10 % of the noise), and the held-out
+   frames are predicted better. Nothing passes: ``"unexplained"``, with where the mismatch sits.
+
+Every FE solve is cached in the run folder (array-only .npz): a resumed diagnosis redoes no solve.
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy import linalg, stats
+
+from .physics import CANDIDATE_PARAMETERS, COORDINATES, ActuatorPhysics, Evaluation, null_coordinate
+from .recordings import Recording, RecordingError
+
+ALL_CANDIDATES = tuple(sorted(CANDIDATE_PARAMETERS))
+
+
+class DiagnosisError(ValueError):
+    """A recording that cannot be diagnosed as it is (too few frames or points, no noise level)."""
+
+
+# -- noise model --------------------------------------------------------------------------------------
+
+@dataclass
+class NoiseModel:
+    """Gaussian noise on (uy, uz): standard deviation ``sigma`` (mm), spatial correlation
+    ``exp(-d^2 / (2 ell^2))`` between points at distance d (ell = 0: independent), components and
+    frames independent. ``estimated`` says whether sigma / ell came from the data."""
+
+    sigma: float
+    ell: float = 0.0
+    estimated: dict = field(default_factory=dict)
+
+    def factor(self, X: np.ndarray) -> np.ndarray | None:
+        """Lower Cholesky factor of the points' correlation matrix (None when independent)."""
+        if self.ell <= 0:
+            return None
+        d2 = ((X[:, None, :] - X[None, :, :]) ** 2).sum(-1)
+        C = np.exp(-d2 / (2 * self.ell**2)) + 1e-8 * np.eye(len(X))
+        return linalg.cholesky(C, lower=True)
+
+
+def estimate_noise(rec: Recording) -> NoiseModel:
+    """sigma and ell from frame-to-frame differences of the recording: a smooth response (and any
+    smooth model mismatch) nearly cancels between neighbouring frames, noise independent in time
+    does not (var = 2 sigma^2). The correlation length is fitted to the empirical correlation of
+    neighbouring points' differences (squared-exponential kernel); below 0.1 correlation at the
+    nearest spacing the noise is taken as independent."""
+    Z = rec.Z
+    if rec.n_frames < 3:
+        raise DiagnosisError(f"{rec.source}: {rec.n_frames} frames; estimating the noise needs at least 3 "
+                             "(or give --noise SIGMA)")
+    D = np.diff(Z, axis=0)
+    D2 = np.diff(Z, n=2, axis=0)  # second differences remove a linear-in-time response too
+    v = np.nanmean(D2**2) / 6.0  # var of x_{k+1} - 2 x_k + x_{k-1} for white noise: 6 sigma^2
+    sigma = float(np.sqrt(v))
+    X = rec.X
+    d = np.sqrt(((X[:, None, :] - X[None, :, :]) ** 2).sum(-1))
+    np.fill_diagonal(d, np.inf)
+    near = float(np.median(d.min(axis=1)))
+    A = np.nan_to_num(D2.transpose(1, 0, 2).reshape(rec.n_points, -1))
+    A = A - A.mean(axis=1, keepdims=True)
+    norm = np.linalg.norm(A, axis=1)
+    C = (A @ A.T) / np.maximum(np.outer(norm, norm), 1e-300)
+    bins = near * np.array([0.5, 1.5, 2.5, 3.5, 5.0])
+    rho, r = [], []
+    for lo, hi in zip(bins[:-1], bins[1:]):
+        m = (d > lo) & (d <= hi)
+        if m.any():
+            rho.append(float(C[m].mean()))
+            r.append(float(d[m].mean()))
+    ell = 0.0
+    if rho and rho[0] > 0.1:
+        # second differences keep the spatial kernel; fit exp(-d^2/2l^2) by least squares in log
+        good = [(ri, pi) for ri, pi in zip(r, rho) if 0.02 < pi < 0.999]
+        if good:
+            rr, pp = np.array(good).T
+            ell = float(np.sqrt(np.sum(rr**4) / np.sum(-2 * np.log(pp) * rr**2)))
+    return NoiseModel(sigma, ell, {"sigma": True, "ell": True, "nearest_spacing_mm": near,
+                                   "neighbour_correlation": rho[0] if rho else 0.0})
+
+
+class Whitener:
+    """Maps residuals (K, P, 2) to independent standard normal residuals under the noise model,
+    honouring missing observations (NaN) frame by frame."""
+
+    def __init__(self, rec: Recording, noise: NoiseModel):
+        self.noise, self.mask = noise, rec.mask
+        self.L = noise.factor(rec.X)
+        self._sub: dict[bytes, np.ndarray] = {}
+
+    def __call__(self, R: np.ndarray) -> np.ndarray:
+        """R: (K, P, 2, ...) -> whitened, NaN where not observed."""
+        out = np.full(R.shape, np.nan)
+        s = self.noise.sigma
+        for k in range(R.shape[0]):
+            for c in range(2):
+                m = self.mask[k, :, c]
+                if not m.any():
+                    continue
+                x = R[k, m, c] / s
+                if self.L is not None:
+                    key = m.tobytes()
+                    if key not in self._sub:
+                        self._sub[key] = self.L if m.all() else linalg.cholesky(
+                            (self.L @ self.L.T)[np.ix_(m, m)], lower=True)
+                    x = linalg.solve_triangular(self._sub[key], x, lower=True)
+                out[k, m, c] = x
+        return out
+
+
+# -- calibration by Gauss-Newton ------------------------------------------------------------------------
+
+@dataclass
+class Fit:
+    """Laplace posterior of the free parameters of one model: MAP ``z`` (coordinates), covariance,
+    log likelihood / prior / evidence, whitened residuals (K, P, 2), the evaluation at the MAP."""
+
+    names: list[str]
+    z: dict[str, float]
+    cov: np.ndarray
+    log_likelihood: float
+    log_prior: float
+    log_evidence: float
+    residual: np.ndarray
+    evaluation: Evaluation
+    solves: int
+    seconds: float
+    converged: bool
+
+    def std(self, name: str) -> float:
+        return float(np.sqrt(self.cov[self.names.index(name), self.names.index(name)]))
+
+    def summary(self) -> dict:
+        out = {}
+        for n in self.names:
+            c = COORDINATES[n]
+            z, s = self.z[n], self.std(n)
+            nat = math.exp(z) if c.transform == "log" else z
+            nat_std = nat * s if c.transform == "log" else s
+            out[n] = {"mean": nat, "std": nat_std, "unit": c.unit, "coordinate": c.transform,
+                      "coordinate_mean": z, "coordinate_std": s}
+        return out
+
+
+def _objective(phys, white, Z, fit_frames, z, names, prior_mu, prior_sd):
+    ev = phys.observe(z)
+    if not ev.ok:
+        return ev, math.inf, None, None
+    e = white((Z - ev.Y)[fit_frames])
+    J = white(ev.J[fit_frames])
+    m = np.isfinite(e)
+    r = e[m]
+    Jm = J[m][:, [ev.names.index(n) for n in names]]
+    dz = np.array([z[n] for n in names]) - prior_mu
+    phi = 0.5 * float(r @ r) + 0.5 * float(np.sum((dz / prior_sd) ** 2))
+    return ev, phi, r, Jm
+
+
+def gauss_newton(phys: ActuatorPhysics, white: Whitener, free: list[str], z0: dict[str, float],
+                 fit_frames: np.ndarray, max_iterations: int = 12, progress=None) -> Fit:
+    """MAP of the ``free`` coordinates (the others stay at ``z0``) by Levenberg-Marquardt-damped
+    Gauss-Newton with the exact sensitivities, prior Gaussian in the coordinates; the Laplace
+    approximation at the MAP gives the covariance and the log evidence."""
+    t0 = time.perf_counter()
+    coords = [COORDINATES[n] for n in free]
+    mu = np.array([c.prior_mean for c in coords])
+    sd = np.array([c.prior_std for c in coords])
+    Z = phys.rec.Z
+    z = dict(z0)
+    solves = 0
+    ev, phi, r, Jm = _objective(phys, white, Z, fit_frames, z, free, mu, sd)
+    solves += 1
+    if not math.isfinite(phi):
+        raise RecordingError(f"{phys.rec.source}: the model did not converge at the starting point {z}")
+    damping, converged = 0.0, False
+    for _ in range(max_iterations):
+        small = False
+        x = np.array([z[n] for n in free])
+        H = Jm.T @ Jm + np.diag(1 / sd**2)
+        g = Jm.T @ r - (x - mu) / sd**2  # r = data - model: the step solves H dx = g
+        accepted = False
+        for _ in range(6):
+            step = np.linalg.solve(H + damping * np.diag(np.diag(H)), g)
+            trial = dict(z)
+            for n, c, s in zip(free, coords, step):
+                trial[n] = c.clip(z[n] + s)
+            ev_t, phi_t, r_t, J_t = _objective(phys, white, Z, fit_frames, trial, free, mu, sd)
+            solves += 1
+            if progress is not None:
+                progress(solves)
+            if phi_t <= phi + 1e-9 * abs(phi):
+                small = np.all(np.abs(np.array([trial[n] - z[n] for n in free])) < 0.01 / np.sqrt(np.diag(H)))
+                z, ev, phi, r, Jm = trial, ev_t, phi_t, r_t, J_t
+                damping = damping / 4 if damping > 1e-6 else 0.0
+                accepted = True
+                break
+            damping = max(4 * damping, 1e-3)
+        if not accepted or small:
+            converged = True  # no step lowers the objective, or the last one was negligible
+            break
+    x = np.array([z[n] for n in free])
+    H = Jm.T @ Jm + np.diag(1 / sd**2)
+    cov = np.linalg.inv(H)
+    n_obs = r.size
+    loglik = -0.5 * float(r @ r) - 0.5 * n_obs * math.log(2 * math.pi) - _log_det_noise(white, fit_frames)
+    logprior = float(np.sum(stats.norm.logpdf(x, mu, sd))) - sum(c.log_prior_normalizer() for c in coords)
+    sign, logdet = np.linalg.slogdet(cov)
+    logev = loglik + logprior + 0.5 * len(free) * math.log(2 * math.pi) + 0.5 * logdet
+    e_all = white(Z - ev.Y)
+    return Fit(list(free), {n: z[n] for n in free}, cov, loglik, logprior, logev, e_all, ev, solves,
+               time.perf_counter() - t0, converged)
+
+
+def _log_det_noise(white: Whitener, frames: np.ndarray) -> float:
+    """log |noise covariance| of the observed entries of ``frames`` (the same for every model)."""
+    total = 0.0
+    for k in frames:
+        for c in range(2):
+            m = white.mask[k, :, c]
+            if not m.any():
+                continue
+            total += m.sum() * math.log(white.noise.sigma)
+            if white.L is not None:
+                L = white.L if m.all() else linalg.cholesky((white.L @ white.L.T)[np.ix_(m, m)], lower=True)
+                total += float(np.sum(np.log(np.diag(L))))
+    return total
+
+
+# -- locate -------------------------------------------------------------------------------------------
+
+def _bh(p: np.ndarray, alpha: float) -> np.ndarray:
+    """Benjamini-Hochberg: True where rejected at false discovery rate alpha."""
+    p = np.asarray(p, dtype=float)
+    order = np.argsort(p)
+    ranked = p[order] * p.size / (np.arange(p.size) + 1)
+    passed = np.flatnonzero(ranked <= alpha)
+    out = np.zeros(p.size, dtype=bool)
+    if passed.size:
+        out[order[: passed[-1] + 1]] = True
+    return out
+
+
+def consistency(E: np.ndarray, frames: np.ndarray, d: int) -> dict:
+    """Global chi^2 test of whitened residuals E (K, P, 2) over ``frames`` (d fitted parameters)."""
+    e = E[frames]
+    e = e[np.isfinite(e)]
+    n = e.size
+    ss = float(e @ e)
+    dof = max(n - d, 1)
+    return {"statistic": ss, "dof": dof, "nis_per_observation": ss / n, "rms": float(np.sqrt(ss / n)),
+            "p_value": float(stats.chi2.sf(ss, dof)), "z": (ss - dof) / math.sqrt(2 * dof)}
+
+
+def locate(E: np.ndarray, rec: Recording, frames: np.ndarray, d: int, alpha: float, raw: np.ndarray,
+           sigma: float) -> dict:
+    """Global test, onset in time and spatial clusters of the whitened residuals E (K, P, 2);
+    ``raw`` residuals (mm) give the map in noise units."""
+    glob = consistency(E, frames, d)
+    # per frame
+    Ek = E[frames]
+    ss_k = np.nansum(Ek**2, axis=(1, 2))
+    n_k = np.isfinite(Ek).sum(axis=(1, 2))
+    p_k = np.where(n_k > 0, stats.chi2.sf(ss_k, np.maximum(n_k, 1)), 1.0)
+    sig_k = _bh(p_k, alpha)
+    onset = None
+    for j in range(len(frames)):
+        if sig_k[j] and sig_k[j:].mean() > 0.5:
+            onset = j
+            break
+    # per point (marginal: standardized, not whitened, so that a point is a point)
+    std = raw[frames] / sigma
+    ss_p = np.nansum(std**2, axis=(0, 2))
+    n_p = np.isfinite(std).sum(axis=(0, 2))
+    p_p = np.where(n_p > 0, stats.chi2.sf(ss_p, np.maximum(n_p, 1)), 1.0)
+    sig_p = _bh(p_p, alpha)
+    rms_p = np.sqrt(ss_p / np.maximum(n_p, 1))
+    clusters = _clusters(rec.X, sig_p, rms_p, rec.point_ids)
+    return {
+        "global": glob,
+        "detected": bool(glob["p_value"] < alpha),
+        "onset": None if onset is None else {"frame": int(rec.frames[frames[onset]]),
+                                              "pressure": float(rec.pressure[frames[onset]]),
+                                              "time": float(rec.times[frames[onset]])},
+        "frames_significant": int(sig_k.sum()),
+        "points_significant": int(sig_p.sum()),
+        "clusters": clusters,
+        "point_rms": rms_p,
+        "frame_statistic": ss_k / np.maximum(n_k, 1),
+    }
+
+
+def _clusters(X: np.ndarray, sig: np.ndarray, rms: np.ndarray, ids: np.ndarray) -> list[dict]:
+    idx = np.flatnonzero(sig)
+    if idx.size == 0:
+        return []
+    d = np.sqrt(((X[:, None, :] - X[None, :, :]) ** 2).sum(-1))
+    np.fill_diagonal(d, np.inf)
+    link = 1.5 * float(np.median(d.min(axis=1)))
+    label = -np.ones(len(X), dtype=int)
+    out = []
+    for seed in idx:
+        if label[seed] >= 0:
+            continue
+        stack, members = [seed], []
+        label[seed] = len(out)
+        while stack:
+            i = stack.pop()
+            members.append(i)
+            for j in idx[(d[i, idx] <= link) & (label[idx] < 0)]:
+                label[j] = len(out)
+                stack.append(j)
+        members = np.array(members)
+        out.append({"points": int(members.size), "centre_mm": X[members].mean(axis=0).round(3).tolist(),
+                    "z_range_mm": [float(X[members, 2].min()), float(X[members, 2].max())],
+                    "rms_noise_units": float(np.sqrt(np.mean(rms[members] ** 2))),
+                    "worst_point": int(ids[members[np.argmax(rms[members])]])})
+    return sorted(out, key=lambda c: -c["points"] * c["rms_noise_units"] ** 2)
+
+
+# -- rank -----------------------------------------------------------------------------------------------
+
+def rank(E: np.ndarray, J: np.ndarray, names: list[str], base: list[str], candidates, frames: np.ndarray,
+         alpha: float, power: float = 0.8, confound_tol: float = 0.1, group_tol: float = 0.95) -> list[dict]:
+    """Score tests of the candidates at the calibrated base point.
+
+    E: whitened residuals (K, P, 2); J: whitened sensitivities (K, P, 2, d) for ``names`` (base
+    parameters first). Returns one row per candidate, most significant first."""
+    m = np.isfinite(E[frames])
+    e = E[frames][m]
+    Jm = J[frames][m]
+    B = Jm[:, [names.index(n) for n in base]]
+    Qb, _ = np.linalg.qr(B)
+    e_perp = e - Qb @ (Qb.T @ e)
+    n_base = e.size - len(base)
+    excess = max(float(e_perp @ e_perp) - n_base, 1e-12)
+    rows, bases = [], {}
+    crit1 = None
+    for c in candidates:
+        cols = [names.index(p) for p in CANDIDATE_PARAMETERS[c]]
+        S = Jm[:, cols]
+        U = S - Qb @ (Qb.T @ S)
+        q = len(cols)
+        s_full = np.linalg.norm(S, axis=0)
+        s_perp = np.linalg.norm(U, axis=0)
+        frac = s_perp / np.maximum(s_full, 1e-300)
+        # directions the base parameters absorb entirely (to the sensitivities' precision) are not
+        # testable; mostly absorbed ones (< confound_tol) are tested but reported as confounded
+        keep = frac > 1e-6
+        confounded = [p for p, f in zip(CANDIDATE_PARAMETERS[c], frac) if f < confound_tol]
+        untestable = [p for p, k in zip(CANDIDATE_PARAMETERS[c], keep) if not k]
+        Uk = U[:, keep]
+        if Uk.shape[1]:
+            Qu, Ru = np.linalg.qr(Uk)
+            proj = Qu.T @ e
+            lm = float(proj @ proj)
+            qk = Uk.shape[1]
+            p = float(stats.chi2.sf(lm, qk))
+            bases[c] = Qu
+            # smallest detectable effect per parameter: noncentrality needed for `power` at level alpha
+            crit = stats.chi2.isf(alpha, qk)
+            nc = _noncentrality(crit, qk, power)
+            detectable = {pn: float(math.sqrt(nc) / sp) for pn, sp, k in zip(CANDIDATE_PARAMETERS[c], s_perp, keep) if k}
+        else:
+            lm, p, qk, detectable = 0.0, 1.0, 0, {}
+        rows.append({"name": c, "parameters": list(CANDIDATE_PARAMETERS[c]), "score": lm, "dof": qk, "p_value": p,
+                     "explained_fraction": float(min(lm / excess, 1.0)) if lm > 0 else 0.0,
+                     "confounded_with": (base if confounded else []),
+                     "confounded_parameters": confounded, "untestable_parameters": untestable,
+                     "detectable_change": detectable,
+                     "projected_fraction": {pn: float(a / max(b, 1e-300)) for pn, a, b in
+                                            zip(CANDIDATE_PARAMETERS[c], s_perp, s_full)}})
+    # groups: candidates whose projected sensitivity spaces nearly coincide
+    for r in rows:
+        r["group"] = [r["name"]]
+    names_c = [r["name"] for r in rows]
+    for i, a in enumerate(names_c):
+        for b in names_c[i + 1:]:
+            if a in bases and b in bases:
+                sv = np.linalg.svd(bases[a].T @ bases[b], compute_uv=False)
+                if sv.size and sv.max() > group_tol:
+                    rows[i]["group"].append(b)
+                    rows[names_c.index(b)]["group"].append(a)
+    for r in rows:
+        r["group"] = sorted(set(r["group"]))
+        r["significant"] = bool(r["p_value"] < alpha / max(len(rows), 1))  # Bonferroni over candidates
+    return sorted(rows, key=lambda r: (-r["score"], r["name"]))
+
+
+def _noncentrality(crit: float, dof: int, power: float) -> float:
+    lo, hi = 0.0, 1e6
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if stats.ncx2.sf(crit, dof, mid) < power:
+            lo = mid
+        else:
+            hi = mid
+    return hi
+
+
+# -- the whole diagnosis ----------------------------------------------------------------------------------
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.bool_):
+        return bool(o)
+    raise TypeError(type(o))
+
+
+def _fit_report(fit: Fit, white: Whitener, frames_fit, frames_held, d: int) -> dict:
+    g = consistency(fit.residual, frames_fit, d)
+    held = fit.residual[frames_held]
+    held = held[np.isfinite(held)]
+    held_logpdf = float(-0.5 * held @ held - 0.5 * held.size * math.log(2 * math.pi)
+                        - _log_det_noise(white, frames_held)) if held.size else None
+    return {"rms": g["rms"], "nis_per_observation": g["nis_per_observation"], "chi2_p_value": g["p_value"],
+            "log_evidence": fit.log_evidence, "log_likelihood": fit.log_likelihood,
+            "held_out_log_density": held_logpdf,
+            "held_out_rms": float(np.sqrt(np.mean(held**2))) if held.size else None,
+            "parameters": fit.summary(), "solves": fit.solves, "seconds": fit.seconds}
+
+
+def diagnose(rec: Recording, noise: float | None = None, correlation: float | None = None, candidates="all",
+             run_dir=None, resolution: int = 1, load_steps: int = 10, alpha: float = 0.01,
+             evidence_threshold: float = 5.0, held_out_every: int = 5, progress: bool = True,
+             max_refits: int = 3) -> dict:
+    """Diagnose ``rec`` (see the module docstring); returns the diagnosis (also written to
+    ``run_dir/diagnosis.json`` with figures when ``run_dir`` is given)."""
+    t_start = time.perf_counter()
+    cands = ALL_CANDIDATES if candidates in ("all", None) else tuple(candidates)
+    unknown = sorted(set(cands) - set(ALL_CANDIDATES))
+    if unknown:
+        raise DiagnosisError(f"unknown candidate {unknown[0]!r}; candidates: {', '.join(ALL_CANDIDATES)}")
+    _check_recording(rec, held_out_every)
+    run_dir = None if run_dir is None else Path(run_dir)
+    cache = None if run_dir is None else run_dir / "solves"
+    if noise is None or correlation is None:
+        est = estimate_noise(rec)
+    nm = NoiseModel(float(noise) if noise is not None else est.sigma,
+                    float(correlation) if correlation is not None else est.ell,
+                    {"sigma": noise is None, "ell": correlation is None})
+    if not (nm.sigma > 0 and math.isfinite(nm.sigma)):
+        raise DiagnosisError(f"noise sigma must be positive, got {nm.sigma}")
+    white = Whitener(rec, nm)
+    K = rec.n_frames
+    held = np.arange(held_out_every - 1, K, held_out_every) if held_out_every > 1 else np.zeros(0, int)
+    fit_frames = np.setdiff1d(np.arange(K), held)
+    bar = _Progress(progress)
+
+    # 1. calibrate the base model
+    base_phys = ActuatorPhysics(rec, (), resolution, load_steps, cache)
+    c10_0 = _initial_c10(base_phys, white, fit_frames, bar)
+    bar.phase("calibrating the base model (C10)")
+    base = gauss_newton(base_phys, white, ["C10"], {"C10": math.log(c10_0)}, fit_frames, progress=bar.tick)
+    c10 = math.exp(base.z["C10"])
+    raw = rec.Z - base.evaluation.Y
+    where = locate(base.residual, rec, fit_frames, 1, alpha, raw, nm.sigma)
+
+    # 2. rank: sensitivities of every candidate at the calibrated point, candidates at their null
+    bar.phase("sensitivities of every candidate at the calibrated point")
+    full = ActuatorPhysics(rec, cands, resolution, load_steps, cache)
+    ev_full = full.observe(full.null_point(c10))
+    bar.tick(1)
+    if not ev_full.ok:
+        raise RecordingError(f"{rec.source}: the model with every candidate at its null did not converge at "
+                             f"C10 = {c10:.4g} MPa")
+    Ew = white(rec.Z - ev_full.Y)
+    Jw = white(ev_full.J)
+    ranking = rank(Ew, Jw, full.names, ["C10"], cands, fit_frames, alpha)
+
+    # 3./4. refit and decide
+    base_report = _fit_report(base, white, fit_frames, held, 1)
+    tried, decision, accepted = [], "none", None
+    if where["detected"]:
+        decision = "unexplained"
+        order = [r for r in ranking if r["significant"] and r["dof"] > 0]
+        trials = [(r["name"],) for r in order[:max_refits]]
+        if len(order) >= 2:
+            trials.append((order[0]["name"], order[1]["name"]))
+        for combo in trials:
+            bar.phase(f"refitting with {' + '.join(combo)}")
+            phys = ActuatorPhysics(rec, combo, resolution, load_steps, cache)
+            free = ["C10"] + [p for c in combo for p in CANDIDATE_PARAMETERS[c]
+                              if p not in next(r for r in ranking if r["name"] == c)["untestable_parameters"]]
+            z0 = phys.null_point(c10)
+            ext = gauss_newton(phys, white, free, z0, fit_frames, progress=bar.tick)
+            rep = _fit_report(ext, white, fit_frames, held, len(free))
+            checks = _acceptance(ext, rep, base_report, combo, evidence_threshold, alpha, c10, free)
+            tried.append({"candidates": list(combo), "fit": rep, "checks": checks, "accepted": all(checks.values())})
+            if all(checks.values()):
+                row = next(r for r in ranking if r["name"] == combo[0])
+                decision = "+".join(combo) if len(row["group"]) == 1 or len(combo) > 1 else "|".join(row["group"])
+                if row["confounded_with"] and len(combo) == 1:
+                    decision = "|".join([decision] + row["confounded_with"])
+                accepted = (combo, ext, rep)
+                break
+    bar.close()
+    fit_after = accepted[2] if accepted else base_report
+    fe_solves = base.solves + 1 + sum(t["fit"]["solves"] for t in tried)
+    out = {
+        "recording": rec.source,
+        "frames": int(K), "points": int(rec.n_points), "observations": int(np.isfinite(rec.Z).sum()),
+        "noise": {"sigma": nm.sigma, "correlation_length_mm": nm.ell, "estimated": nm.estimated},
+        "mismatch_detected": {"detected": where["detected"], "alpha": alpha, "global": where["global"],
+                              "frames_significant": where["frames_significant"],
+                              "points_significant": where["points_significant"]},
+        "location": {"clusters": where["clusters"]},
+        "onset": where["onset"],
+        "ranking": ranking,
+        "tried": tried,
+        "decision": decision,
+        "parameters": {"base": base_report["parameters"], "extended": accepted[2]["parameters"] if accepted else None},
+        "fit_before": base_report,
+        "fit_after": fit_after,
+        "cost": {"solves": fe_solves, "seconds": time.perf_counter() - t_start, "resolution": resolution,
+                 "load_steps": load_steps, "ranking_solves": 1},
+        "held_out_frames": [int(rec.frames[k]) for k in held],
+    }
+    if run_dir is not None:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / "diagnosis.json").write_text(json.dumps(out, indent=1, default=_json_default))
+        np.savez(run_dir / "residuals.npz", before=raw, after=(rec.Z - accepted[1].evaluation.Y) if accepted else raw,
+                 point_rms_before=where["point_rms"], X=rec.X, point_ids=rec.point_ids)
+        try:
+            from .report.diagnosis import write_figures
+
+            write_figures(run_dir, rec, out, base, accepted[1] if accepted else None, nm.sigma, where)
+        except ImportError:  # figures need matplotlib
+            pass
+    return out
+
+
+def _acceptance(fit: Fit, rep: dict, base_rep: dict, combo, threshold: float, alpha: float, c10: float,
+                free: list[str]) -> dict:
+    away, inside = True, True
+    for c in combo:
+        for p in CANDIDATE_PARAMETERS[c]:
+            if p not in free:
+                continue
+            co = COORDINATES[p]
+            null = null_coordinate(p, math.exp(fit.z["C10"]))
+            dist = abs(fit.z[p] - (0.0 if p in ("c_n", "c_t") else null)) / fit.std(p)
+            away &= dist > 3.0
+            nat = math.exp(fit.z[p]) if co.transform == "log" else fit.z[p]
+            inside &= co.low <= nat <= co.high
+    held_better = (rep["held_out_log_density"] is None or base_rep["held_out_log_density"] is None
+                   or rep["held_out_log_density"] > base_rep["held_out_log_density"])
+    return {"evidence": rep["log_evidence"] - base_rep["log_evidence"] > threshold,
+            "away_from_null": bool(away), "inside_range": bool(inside),
+            "residual_at_noise": bool(rep["chi2_p_value"] > alpha and rep["rms"] < 1.1),
+            "held_out_better": bool(held_better)}
+
+
+def _check_recording(rec: Recording, held_out_every: int) -> None:
+    if rec.n_frames < 4:
+        raise DiagnosisError(f"{rec.source}: {rec.n_frames} frames; a diagnosis needs at least 4 frames (some are "
+                             "held out to check predictions, and the onset test needs a time series)")
+    if rec.n_points < 5:
+        raise DiagnosisError(f"{rec.source}: {rec.n_points} points; a diagnosis needs at least 5 points on the face "
+                             "to locate a mismatch")
+    if not (rec.pressure > 0).any():
+        raise DiagnosisError(f"{rec.source}: no frame has a positive pressure; nothing loads the actuator")
+
+
+def _initial_c10(phys: ActuatorPhysics, white: Whitener, frames, bar) -> float:
+    """A starting C10 for Gauss-Newton from one solve, by the scaling law of the incompressible
+    rigid-fibre actuator: u(P, C10) ~ u(P C10_lo / C10, C10_lo) (DESIGN §1.3). The solve at a soft
+    C10_lo (the prior's 2.5 % quantile) covers every stiffer C10's load range; the recording's
+    misfit is then minimized over C10 on that one solve (golden section in log C10)."""
+    from scipy.optimize import minimize_scalar
+
+    c = COORDINATES["C10"]
+    lo = c.prior_mean - 1.96 * c.prior_std
+    bar.phase("starting point of C10 (one solve, scaling law)")
+    steps = phys.at_steps({"C10": lo})
+    bar.tick(1)
+    if steps is None:
+        return math.exp(c.prior_mean)
+    s, Ys, dYs = steps
+    lam = phys.frame_loads({"C10": torch.tensor([lo], dtype=torch.float64)}).numpy()
+    Z = phys.rec.Z
+
+    def misfit(logc):
+        scaled = np.clip(lam * math.exp(lo - logc), 0.0, 1.0)  # the frames' load factors on the soft solve
+        j = np.clip(np.searchsorted(s, scaled, side="right") - 1, 0, s.size - 2)
+        h = s[j + 1] - s[j]
+        t = ((scaled - s[j]) / h)[:, None, None]
+        hh = h[:, None, None]
+        Y = ((2 * t**3 - 3 * t**2 + 1) * Ys[j] + hh * (t**3 - 2 * t**2 + t) * dYs[j]
+             + (-2 * t**3 + 3 * t**2) * Ys[j + 1] + hh * (t**3 - t**2) * dYs[j + 1])
+        e = white((Z - Y)[frames])
+        return float(np.nansum(e**2))
+
+    res = minimize_scalar(misfit, bounds=(lo, c.prior_mean + 3 * c.prior_std), method="bounded",
+                          options={"xatol": 1e-4})
+    return float(math.exp(res.x))
+
+
+class _Progress:
+    """A labelled bar counting FE solves (each ~10-20 s at resolution 1)."""
+
+    def __init__(self, enabled: bool):
+        self.enabled, self.bar, self.count = enabled, None, 0
+
+    def phase(self, label: str):
+        if not self.enabled:
+            return
+        from tqdm.auto import tqdm
+
+        if self.bar is None:
+            self.bar = tqdm(desc=label, unit="solve", bar_format="{desc}: {n} FE solves so far [{elapsed}]")
+        self.bar.set_description(label)
+
+    def tick(self, n=1):
+        if self.bar is not None:
+            self.bar.update(1)
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()

@@ -1,0 +1,309 @@
+"""The actuator model with any set of candidate physics switched on, seen through a recording.
+
+``ActuatorPhysics`` is the bridge between the FE library and the statistics of the diagnosis: it
+names the free parameters (in the coordinates the statistics work in: log for scale parameters),
+their priors, null values and admissible ranges, builds the FE model with the candidates switched
+on, and evaluates the recording's observations ``Y`` (K frames x P points x (uy, uz)) and their
+exact sensitivities ``dY/dz`` (implicit differentiation, :mod:`torchfra.fem.sensitivity`) at any
+parameter point.
+
+Frames are tied to the model by their pressure (quasi-static, hyperelastic: DESIGN §6): the model
+is solved at ``load_steps`` evenly spaced load levels and each frame is read off by cubic Hermite
+interpolation in the load factor, with ``du/dlambda`` from the same factorizations (error O(h^4):
+measured below 1e-4 mm at 10 steps, tests/test_physics.py). A pressure sensor's gain and offset act
+on that frame-to-load map only (the true pressure is ``gain * recorded + offset``).
+
+Parameter coordinates and priors (Gaussian in the coordinate, truncated to the admissible range):
+
+=================  ========  ===============================  ======================  =============
+parameter          coord.    prior                            null                    candidate
+=================  ========  ===============================  ======================  =============
+C10 (MPa)          log       log C10 ~ N(log 0.0068, 0.5^2)   (base)                  base model
+C01 (MPa)          linear    N(0, 0.003^2)                    0                       mooney_rivlin
+D1 (1/MPa)         log       N(log 1/(1000 C10), 2^2)         1/(1000 C10)            compressibility
+E_fiber (MPa)      log       N(log 31000, 2.5^2)              31000                   fiber_stiffness
+density (t/mm^3)   linear    N(0, (2e-9)^2), >= 0             0                       gravity
+c_n, c_t (mm^3/N)  linear    N(0, 2^2), >= 0                  0 (clamp)               compliant_base
+pressure_gain      linear    N(1, 0.2^2), > 0                 1                       pressure_sensor
+pressure_offset    linear    N(0, 0.003^2) MPa                0                       pressure_sensor
+=================  ========  ===============================  ======================  =============
+
+A compliant base is evaluated at c = 1e-4 mm^3/N in place of its null (the clamp has no spring
+dofs): the base then moves by ~1e-6 mm, far below any DIC noise.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+
+from . import fem
+from .fem.sensitivity import sensitivities
+from .geometry.actuator import ActuatorGeometry, build_actuator_model
+from .observe import ObservationError, ObservationOperator, visible_faces
+from .recordings import Recording, RecordingError
+
+BULK_RATIO = 1000.0
+E_FIBER = 31000.0
+SPRING_NULL = 1e-4  # mm^3/N: the clamp's stand-in when a compliant base is switched on
+
+
+@dataclass(frozen=True)
+class Coordinate:
+    """A free parameter: natural ``name``, coordinate ``transform`` ("log" or "linear"), Gaussian
+    prior (mean, std) in the coordinate, admissible natural range, null (natural; None for the base
+    model's own parameters), the candidate it belongs to."""
+
+    name: str
+    unit: str
+    transform: str
+    prior_mean: float
+    prior_std: float
+    low: float
+    high: float
+    null: float | None
+    candidate: str
+
+    def natural(self, z):
+        return torch.exp(z) if self.transform == "log" else z
+
+    def coordinate(self, x: float) -> float:
+        return math.log(x) if self.transform == "log" else float(x)
+
+    def clip(self, z: float) -> float:
+        lo = self.coordinate(self.low) if not (self.transform == "log" and self.low <= 0) else -math.inf
+        hi = self.coordinate(self.high) if math.isfinite(self.high) else math.inf
+        return float(min(max(z, lo), hi))
+
+    def log_prior_normalizer(self) -> float:
+        """log of the prior mass inside the admissible range (the truncation's normalization)."""
+        from scipy.stats import norm
+
+        lo = self.coordinate(self.low) if not (self.transform == "log" and self.low <= 0) else -math.inf
+        hi = self.coordinate(self.high) if math.isfinite(self.high) else math.inf
+        mass = norm.cdf(hi, self.prior_mean, self.prior_std) - norm.cdf(lo, self.prior_mean, self.prior_std)
+        return math.log(max(mass, 1e-300))
+
+
+C10_PRIOR_MEAN = 0.0068
+COORDINATES = {
+    c.name: c
+    for c in (
+        Coordinate("C10", "MPa", "log", math.log(C10_PRIOR_MEAN), 0.5, 0.0, math.inf, None, "base"),
+        Coordinate("C01", "MPa", "linear", 0.0, 0.003, -0.003, 0.05, 0.0, "mooney_rivlin"),
+        Coordinate("D1", "1/MPa", "log", math.log(1 / (BULK_RATIO * C10_PRIOR_MEAN)), 2.0, 0.0, 1e4, None,
+                   "compressibility"),
+        Coordinate("E_fiber", "MPa", "log", math.log(E_FIBER), 2.5, 0.0, 1e6, E_FIBER, "fiber_stiffness"),
+        Coordinate("density", "t/mm^3", "linear", 0.0, 2e-9, 0.0, 2.5e-8, 0.0, "gravity"),
+        Coordinate("c_n", "mm^3/N", "linear", 0.0, 2.0, SPRING_NULL, 1e3, 0.0, "compliant_base"),
+        Coordinate("c_t", "mm^3/N", "linear", 0.0, 2.0, SPRING_NULL, 1e3, 0.0, "compliant_base"),
+        Coordinate("pressure_gain", "1", "linear", 1.0, 0.2, 0.2, 5.0, 1.0, "pressure_sensor"),
+        Coordinate("pressure_offset", "MPa", "linear", 0.0, 0.003, -0.02, 0.02, 0.0, "pressure_sensor"),
+    )
+}
+CANDIDATE_PARAMETERS = {
+    "mooney_rivlin": ("C01",), "compressibility": ("D1",), "fiber_stiffness": ("E_fiber",),
+    "gravity": ("density",), "compliant_base": ("c_n", "c_t"), "pressure_sensor": ("pressure_gain", "pressure_offset"),
+}
+GRAVITY_DIRECTION = (0.0, -1.0, 0.0)  # the actuator lies on its side, bending in the camera's plane
+
+
+def null_coordinate(name: str, c10: float) -> float:
+    """The coordinate at which parameter ``name`` switches its candidate off (base-model value)."""
+    if name == "D1":
+        return math.log(1.0 / (BULK_RATIO * c10))
+    if name in ("c_n", "c_t"):
+        return SPRING_NULL
+    return COORDINATES[name].coordinate(COORDINATES[name].null)
+
+
+@dataclass
+class Evaluation:
+    """Observations of one parameter point: Y (K, P, 2) mm at the recording's frames and points,
+    J (K, P, 2, d) = dY/dz in the coordinates of ``names``; ``ok`` False when the solve failed."""
+
+    z: dict[str, float]
+    names: list[str]
+    Y: np.ndarray
+    J: np.ndarray
+    ok: bool
+    iterations: int
+    seconds: float
+    reused: bool = False
+
+
+class ActuatorPhysics:
+    """The actuator at ``resolution`` with ``candidates`` switched on, observed at ``rec``'s points.
+
+    ``cache_dir``: where solves are kept (array-only .npz keyed by the model, the load steps and
+    the parameter point): a resumed run, or another recording with the same model, reuses them."""
+
+    def __init__(self, rec: Recording, candidates=(), resolution: int = 1, load_steps: int = 10,
+                 cache_dir: str | Path | None = None, newton: dict | None = None):
+        unknown = sorted(set(candidates) - set(CANDIDATE_PARAMETERS))
+        if unknown:
+            raise ValueError(f"unknown candidate physics {unknown}; known: {sorted(CANDIDATE_PARAMETERS)}")
+        self.rec = rec
+        self.candidates = tuple(sorted(candidates))
+        self.resolution, self.load_steps = int(resolution), int(load_steps)
+        self.newton = {"stagnation_tol": 1e-6, **(newton or {})}
+        material = fem.MooneyRivlin() if "mooney_rivlin" in self.candidates else None
+        self.model, self.info = build_actuator_model(
+            ActuatorGeometry(resolution=self.resolution), material=material,
+            base="compliant" if "compliant_base" in self.candidates else "clamp",
+            gravity=GRAVITY_DIRECTION if "gravity" in self.candidates else None)
+        self.model.finalize()
+        self.mesh = self.model.mesh
+        faces = visible_faces(self.mesh, (1.0, 0.0, 0.0))
+        try:
+            op = ObservationOperator(self.mesh, faces, points=rec.X, point_ids=rec.point_ids, tol=0.05)
+        except ObservationError as exc:
+            raise RecordingError(f"{rec.source}: {exc}") from exc
+        self.W = op.weights.tocsr()[:, :self.mesh.n_nodes] if op.weights.shape[1] > self.mesh.n_nodes else op.weights.tocsr()
+        self.cache_dir = None if cache_dir is None else Path(cache_dir)
+        self.names = ["C10"] + [p for c in self.candidates for p in CANDIDATE_PARAMETERS[c]]
+        self.steps = np.arange(1, self.load_steps + 1) / self.load_steps
+
+    # -- parameters --------------------------------------------------------------------------------
+    def coordinates(self) -> list[Coordinate]:
+        return [COORDINATES[n] for n in self.names]
+
+    def null_point(self, c10: float) -> dict[str, float]:
+        """Every candidate at its null, C10 as given (coordinates)."""
+        return {n: (math.log(c10) if n == "C10" else null_coordinate(n, c10)) for n in self.names}
+
+    def _natural(self, z: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        return {n: COORDINATES[n].natural(z[n]) for n in z}
+
+    def _pressure_scale(self, nat) -> torch.Tensor:
+        """True pressure at load factor 1: the largest true pressure among the frames."""
+        p = torch.as_tensor(self.rec.pressure, dtype=torch.float64)
+        g = nat.get("pressure_gain", torch.ones(1, dtype=torch.float64))
+        o = nat.get("pressure_offset", torch.zeros(1, dtype=torch.float64))
+        return (g * p.max() + o).reshape(-1)
+
+    def params_of(self, z: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Model parameters (name -> (1,)) of the coordinates ``z``."""
+        nat = self._natural(z)
+        c10 = nat["C10"].reshape(-1)
+        one = torch.ones_like(c10)
+        p = {"C10": c10, "D1": nat["D1"].reshape(-1) if "D1" in nat else 1.0 / (BULK_RATIO * c10),
+             "E_fiber": nat["E_fiber"].reshape(-1) if "E_fiber" in nat else E_FIBER * one,
+             "P": self._pressure_scale(nat) * one}
+        if "mooney_rivlin" in self.candidates:
+            p["C01"] = nat["C01"].reshape(-1)
+        if "gravity" in self.candidates:
+            p["density"] = nat["density"].reshape(-1)
+        if "compliant_base" in self.candidates:
+            p["c_n"], p["c_t"] = nat["c_n"].reshape(-1), nat["c_t"].reshape(-1)
+        return p
+
+    def frame_loads(self, z: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Load factor of every frame (K,): true pressure / true pressure at load factor 1."""
+        nat = self._natural(z)
+        p = torch.as_tensor(self.rec.pressure, dtype=torch.float64)
+        g = nat.get("pressure_gain", torch.ones(1, dtype=torch.float64))
+        o = nat.get("pressure_offset", torch.zeros(1, dtype=torch.float64))
+        return (g * p + o) / self._pressure_scale(nat)
+
+    # -- evaluation ----------------------------------------------------------------------------------
+    def _key(self, z: dict[str, float]) -> str:
+        desc = {"resolution": self.resolution, "candidates": self.candidates, "steps": self.load_steps,
+                "pmax": float(np.max(self.rec.pressure)), "newton": self.newton,
+                "z": {k: float(f"{v:.15e}") for k, v in sorted(z.items())}}
+        return hashlib.sha256(json.dumps(desc, sort_keys=True).encode()).hexdigest()[:20]
+
+    def _solve_nodal(self, z: dict[str, float]):
+        """u and du/dlambda at lambda = 0, steps (S+1, n, 3) and du/dz (S+1, n, 3, d); iterations."""
+        key = self._key(z)
+        path = None if self.cache_dir is None else self.cache_dir / f"solve_{key}.npz"
+        if path is not None and path.exists():
+            with np.load(path, allow_pickle=False) as f:
+                return f["u"], f["du_dlam"], f["du"], bool(f["ok"]), int(f["iterations"]), True
+        zt = {k: torch.tensor([v], dtype=torch.float64) for k, v in z.items()}
+        params = self.params_of(zt)
+        sol = fem.solve(self.model, params, self.steps, fem.NewtonOptions(**self.newton))
+        n = self.mesh.n_nodes
+        d = len(self.names)
+        ok = bool(sol.converged[0])
+        u = np.zeros((self.load_steps + 1, n, 3))
+        du_dlam = np.zeros_like(u)
+        du = np.zeros((self.load_steps + 1, n, 3, d))
+        if ok:
+            # the unloaded state (lambda = 0) joins the steps: its du/dlambda is the Euler velocity
+            sol0 = fem.Solution(np.concatenate([[0.0], sol.load_factors]),
+                                torch.cat([torch.zeros_like(sol.u[:, :1]), sol.u], 1),
+                                torch.cat([torch.zeros_like(sol.a[:, :1]), sol.a], 1), sol.status,
+                                sol.load_reached, sol.iterations, sol.increments, sol.cutbacks,
+                                sol.last_residual, sol.residual_history)
+            S = sensitivities(self.model, self.params_of, zt, sol0, names=self.names)
+            u = sol0.u[0, :, :n].numpy()
+            du_dlam = S.du_dlambda[0, :, :n].numpy()
+            du = S.du[0, :, :n].numpy()
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(path.stem + ".tmp.npz")
+            np.savez(tmp, u=u, du_dlam=du_dlam, du=du, ok=ok, iterations=int(sol.iterations[0]))
+            tmp.replace(path)
+        return u, du_dlam, du, ok, int(sol.iterations[0]), False
+
+    def _observed(self, field: np.ndarray) -> np.ndarray:
+        """(S+1, n, 3, ...) nodal fields -> (S+1, P, 2, ...) at the recording's points (uy, uz)."""
+        f = field[:, :, 1:3]
+        flat = np.moveaxis(f, 1, 0).reshape(f.shape[1], -1)
+        return np.moveaxis((self.W @ flat).reshape((self.W.shape[0],) + f.shape[:1] + f.shape[2:]), 0, 1)
+
+    def at_steps(self, z: dict[str, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """``(load factors (S+1,), Y (S+1, P, 2), dY/dlambda)`` at the solve's own load steps (lambda = 0
+        included), None if the solve failed."""
+        u, du_dlam, _, ok, _, _ = self._solve_nodal({n: float(z[n]) for n in self.names})
+        if not ok:
+            return None
+        return np.concatenate([[0.0], self.steps]), self._observed(u), self._observed(du_dlam)
+
+    def observe(self, z: dict[str, float]) -> Evaluation:
+        """Y and dY/dz at the recording's frames and points for coordinates ``z`` (every name)."""
+        import time
+
+        missing = sorted(set(self.names) - set(z))
+        if missing:
+            raise ValueError(f"parameters {missing} have no value; the model's parameters are {self.names}")
+        t0 = time.perf_counter()
+        z = {n: float(z[n]) for n in self.names}
+        u, du_dlam, du, ok, its, reused = self._solve_nodal(z)
+        K, P, d = self.rec.n_frames, self.W.shape[0], len(self.names)
+        if not ok:
+            return Evaluation(z, list(self.names), np.full((K, P, 2), np.nan), np.full((K, P, 2, d), np.nan), False,
+                              its, time.perf_counter() - t0, reused)
+        Ys, dYs, Js = self._observed(u), self._observed(du_dlam), self._observed(du)
+        zt = {k: torch.tensor([v], dtype=torch.float64) for k, v in z.items()}
+        lam = self.frame_loads(zt).numpy()
+        dlam = np.stack([_derivative(self.frame_loads, zt, n) for n in self.names], axis=1)  # (K, d)
+        s = np.concatenate([[0.0], self.steps])
+        lam_c = np.clip(lam, 0.0, 1.0)
+        i = np.clip(np.searchsorted(s, lam_c, side="right") - 1, 0, s.size - 2)
+        h = s[i + 1] - s[i]
+        t = (lam_c - s[i]) / h
+        h00, h10, h01, h11 = 2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t, -2 * t**3 + 3 * t**2, t**3 - t**2
+        e = (slice(None), None, None)
+        Y = h00[e] * Ys[i] + (h * h10)[e] * dYs[i] + h01[e] * Ys[i + 1] + (h * h11)[e] * dYs[i + 1]
+        # dY/dlambda of the Hermite cubic, for the frames' load factors that move with the sensor parameters
+        g00, g10, g01, g11 = (6 * t**2 - 6 * t) / h, 3 * t**2 - 4 * t + 1, (-6 * t**2 + 6 * t) / h, 3 * t**2 - 2 * t
+        dY = g00[e] * Ys[i] + g10[e] * dYs[i] + g01[e] * Ys[i + 1] + g11[e] * dYs[i + 1]
+        J = (1 - t)[:, None, None, None] * Js[i] + t[:, None, None, None] * Js[i + 1] + dY[..., None] * dlam[:, None, None, :]
+        return Evaluation(z, list(self.names), Y, J, True, its, time.perf_counter() - t0, reused)
+
+
+def _derivative(fn, z: dict[str, torch.Tensor], name: str) -> np.ndarray:
+    import torch.autograd.forward_ad as fwAD
+
+    with fwAD.dual_level():
+        zz = {k: fwAD.make_dual(v, torch.ones_like(v)) if k == name else v for k, v in z.items()}
+        out = fwAD.unpack_dual(fn(zz))
+        return np.zeros(out.primal.shape) if out.tangent is None else out.tangent.numpy().copy()
