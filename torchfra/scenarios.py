@@ -49,6 +49,8 @@ force or moment and springs under it only relax the clamp's hold on the base fac
 below ~21 while the stretch is local (12 mm gave 6.1, 4 mm 0.14); a debonded modulus of 0.31 MPa
 instead of 31 MPa ballooned the cavity (no convergence past 49 % load).
 Gravity matters far below a silicone's density (1.1e-9 t/mm^3 would give SNR ~200): the body is soft.
+Spot checks at the generation resolution 2 (15.7k dofs, ~75 s per solve): gravity size 2 gave 14.1,
+fiber_debond size 3 gave 20.9.
 
 No inverse crime: recordings are made at resolution 2 (the diagnosis works at 1), at grid points
 that are not mesh nodes (a regular grid shifted by a fraction of its spacing: a camera's grid has
