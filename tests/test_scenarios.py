@@ -1,0 +1,119 @@
+"""Scenario recordings of the proof suite (torchfra.scenarios): the null is the base model, an effect
+shows at the SNR its metadata claims, the noise has the asked-for statistics, clean observations are
+cached, bad names are refused, and the DIC grid avoids the mesh nodes.
+
+FE work is kept to three solves at resolution 1 on a short trace (module-scoped fixtures)."""
+import numpy as np
+import pytest
+import torch
+
+from torchfra import fem, scenarios
+from torchfra.geometry.actuator import ActuatorGeometry, actuator_mesh, build_actuator_model
+from torchfra.observe import ObservationOperator, visible_faces
+
+FAST = dict(resolution=1, frames=3, truth_c10=0.0062)
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    return tmp_path_factory.mktemp("clean")
+
+
+@pytest.fixture(scope="module")
+def null(cache):
+    return scenarios.make_scenario("none", 0, noise=0.5, seed=3, cache_dir=cache, **FAST)
+
+
+@pytest.fixture(scope="module")
+def gravity(cache, null):
+    return scenarios.make_scenario("gravity", 2, noise=0.5, seed=4, cache_dir=cache, **FAST)
+
+
+def test_null_is_the_base_model_at_the_same_points(null):
+    rec, clean, meta = null
+    model, info = build_actuator_model(ActuatorGeometry(resolution=1))
+    c10 = FAST["truth_c10"]
+    params = {"C10": [c10], "D1": [1 / (1000 * c10)], "E_fiber": [31000.0], "P": [0.022]}
+    sol = fem.solve(model, {k: torch.tensor(v) for k, v in params.items()}, rec.pressure / 0.022,
+                    fem.NewtonOptions(stagnation_tol=1e-6))
+    op = ObservationOperator(info["mesh"], visible_faces(info["mesh"], (1.0, 0.0, 0.0)), points=rec.X)
+    expected = op(sol.u[0, :, : info["mesh"].n_nodes]).numpy()
+    assert np.abs(expected).max() > 5.0  # a real deflection (mm), not two zeros
+    np.testing.assert_allclose(clean, expected, atol=1e-6 * np.abs(expected).max())
+    assert meta["snr"] == 0.0 and meta["expected"] == "none" and meta["solves"] == 1
+    np.testing.assert_allclose(rec.pressure, 0.022 * np.arange(1, 4) / 3)
+
+
+def test_effect_differs_from_the_null_by_the_snr_meta_reports(null, gravity):
+    _, clean0, _ = null
+    rec, clean, meta = gravity
+    assert meta["solves"] == 1  # the null's clean observations came from the cache
+    assert meta["parameters"]["density"] == scenarios.EFFECTS["gravity"].sizes[1] > 0
+    snr = np.linalg.norm(clean - clean0) / 0.5
+    assert snr > 1.0
+    assert meta["snr"] == pytest.approx(snr, rel=1e-12)
+    np.testing.assert_array_equal(rec.X, null[0].X)
+
+
+def test_noise_statistics_iid(null, gravity):
+    for rec, clean, meta in (null, gravity):
+        e = (rec.Z - clean).ravel()
+        # mean of n draws: std sigma / sqrt(n); std: relative std 1 / sqrt(2n); 5-sigma bounds
+        n = e.size
+        assert abs(e.mean()) < 5 * 0.5 / np.sqrt(n)
+        assert abs(e.std() / 0.5 - 1) < 5 / np.sqrt(2 * n)
+    assert not np.allclose(null[0].Z - null[1], gravity[0].Z - gravity[1])  # seeds differ
+
+
+def test_correlated_noise_has_the_requested_correlation():
+    points = scenarios.dic_grid(actuator_mesh(ActuatorGeometry(resolution=1)), 2.0)
+    ell, sigma, frames = 3.0, 0.7, 400
+    e, _ = scenarios.observation_noise(points, frames, sigma, ell, np.random.default_rng(0))
+    assert e.shape == (frames, len(points), 2)
+    flat = e.transpose(0, 2, 1).reshape(-1, len(points))  # draws x points
+    assert flat.std() == pytest.approx(sigma, rel=0.03)
+    d = np.linalg.norm(points[:, None] - points[None], axis=-1)
+    corr = np.corrcoef(flat.T)
+    for lag in (2.0, 4.0):  # grid neighbours and next neighbours along an axis
+        pairs = np.isclose(d, lag)
+        assert pairs.sum() > 100
+        assert corr[pairs].mean() == pytest.approx(np.exp(-lag**2 / (2 * ell**2)), abs=0.02)
+    iid, _ = scenarios.observation_noise(points, frames, sigma, 0.0, np.random.default_rng(0))
+    assert abs(np.corrcoef(iid.transpose(0, 2, 1).reshape(-1, len(points)).T)[np.isclose(d, 2.0)].mean()) < 0.02
+
+
+def test_clean_cache_is_reused_without_solving(null, gravity, cache, monkeypatch):
+    def no_solve(*args, **kwargs):
+        raise AssertionError("fem.solve called although the clean observations are cached")
+
+    monkeypatch.setattr(fem, "solve", no_solve)
+    rec, clean, meta = scenarios.make_scenario("gravity", 2, noise=0.5, seed=9, cache_dir=cache, **FAST)
+    assert meta["solves"] == 0
+    np.testing.assert_array_equal(clean, gravity[1])
+    assert meta["snr"] == gravity[2]["snr"]
+    assert not np.allclose(rec.Z, gravity[0].Z)  # another seed, other noise on the same clean part
+    _, clean_null, meta_null = scenarios.make_scenario("gravity", 0, noise=0.5, cache_dir=cache, **FAST)
+    np.testing.assert_array_equal(clean_null, null[1])  # size 0 is the null itself
+    for path in cache.iterdir():
+        with np.load(path, allow_pickle=False) as f:
+            assert f["clean"].dtype == np.float64
+
+
+def test_unknown_effect_or_size_is_refused_naming_it():
+    with pytest.raises(ValueError, match="'gravitas'.*gravity.*sensor_lag"):
+        scenarios.make_scenario("gravitas", 1)
+    with pytest.raises(ValueError, match="unknown size 7 of effect 'gravity'"):
+        scenarios.make_scenario("gravity", 7)
+    with pytest.raises(ValueError, match="outside its admissible range"):
+        scenarios.make_scenario("gravity", 1.0)
+
+
+def test_grid_points_are_not_mesh_nodes():
+    for resolution in (1, 2):
+        mesh = actuator_mesh(ActuatorGeometry(resolution=resolution))
+        points = scenarios.dic_grid(mesh, 2.0)
+        assert len(points) >= 200
+        assert np.allclose(points[:, 0], 8.0)
+        gap = np.linalg.norm(points[:, None] - mesh.nodes[None], axis=-1).min()
+        assert gap > 0.05  # mm
+        ObservationOperator(mesh, visible_faces(mesh, (1.0, 0.0, 0.0)), points=points)  # all on the face
