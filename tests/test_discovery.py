@@ -146,9 +146,11 @@ def offset_recording():
 
 def test_diagnosis_names_a_pressure_offset_and_resumes_without_solving(offset_recording, tmp_path, monkeypatch):
     out = diagnose(offset_recording, noise=0.3, correlation=0.0, candidates=["pressure_sensor", "gravity"],
-                   run_dir=tmp_path / "d", progress=False)
+                   run_dir=tmp_path / "d", progress=False, load_steps=6)
     assert out["mismatch_detected"]["detected"]
-    assert out["decision"].split("|")[0] == "pressure_sensor", (out["decision"], out["tried"])
+    assert out["decision"] == "pressure_sensor", (out["decision"], out["tried"])
+    sensor = next(r for r in out["ranking"] if r["name"] == "pressure_sensor")
+    assert sensor["confounded_parameters"] == ["pressure_gain"]  # the gain is C10's twin (scaling law)
     ext = out["parameters"]["extended"]["pressure_offset"]
     assert abs(ext["mean"] - 0.004) < 3 * ext["std"] + 2e-4, ext
     assert out["fit_after"]["rms"] < 1.1 < out["fit_before"]["rms"]
@@ -160,5 +162,5 @@ def test_diagnosis_names_a_pressure_offset_and_resumes_without_solving(offset_re
     monkeypatch.setattr(fem, "solve", no_solve)
     monkeypatch.setattr("torchfra.physics.fem.solve", no_solve)
     again = diagnose(offset_recording, noise=0.3, correlation=0.0, candidates=["pressure_sensor", "gravity"],
-                     run_dir=tmp_path / "d", progress=False)
+                     run_dir=tmp_path / "d", progress=False, load_steps=6)
     assert again["decision"] == out["decision"]

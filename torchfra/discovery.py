@@ -191,7 +191,7 @@ def _objective(phys, white, Z, fit_frames, z, names, prior_mu, prior_sd):
 
 
 def gauss_newton(phys: ActuatorPhysics, white: Whitener, free: list[str], z0: dict[str, float],
-                 fit_frames: np.ndarray, max_iterations: int = 12, progress=None) -> Fit:
+                 fit_frames: np.ndarray, max_iterations: int = 8, progress=None) -> Fit:
     """MAP of the ``free`` coordinates (the others stay at ``z0``) by Levenberg-Marquardt-damped
     Gauss-Newton with the exact sensitivities, prior Gaussian in the coordinates; the Laplace
     approximation at the MAP gives the covariance and the log evidence."""
@@ -213,7 +213,7 @@ def gauss_newton(phys: ActuatorPhysics, white: Whitener, free: list[str], z0: di
         H = Jm.T @ Jm + np.diag(1 / sd**2)
         g = Jm.T @ r - (x - mu) / sd**2  # r = data - model: the step solves H dx = g
         accepted = False
-        for _ in range(6):
+        for _ in range(4):
             step = np.linalg.solve(H + damping * np.diag(np.diag(H)), g)
             trial = dict(z)
             for n, c, s in zip(free, coords, step):
@@ -517,7 +517,7 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
             bar.phase(f"refitting with {' + '.join(combo)}")
             phys = ActuatorPhysics(rec, combo, resolution, load_steps, cache)
             free = ["C10"] + [p for c in combo for p in CANDIDATE_PARAMETERS[c]
-                              if p not in next(r for r in ranking if r["name"] == c)["untestable_parameters"]]
+                              if p not in next(r for r in ranking if r["name"] == c)["confounded_parameters"]]
             z0 = phys.null_point(c10)
             ext = gauss_newton(phys, white, free, z0, fit_frames, progress=bar.tick)
             rep = _fit_report(ext, white, fit_frames, held, len(free))
@@ -526,8 +526,6 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
             if all(checks.values()):
                 row = next(r for r in ranking if r["name"] == combo[0])
                 decision = "+".join(combo) if len(row["group"]) == 1 or len(combo) > 1 else "|".join(row["group"])
-                if row["confounded_with"] and len(combo) == 1:
-                    decision = "|".join([decision] + row["confounded_with"])
                 accepted = (combo, ext, rep)
                 break
     bar.close()
