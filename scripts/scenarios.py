@@ -22,7 +22,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from torchfra import cli, scenarios  # noqa: E402
+from torchfra import scenarios  # noqa: E402
 
 NULL_C10 = (0.0048, 0.0062, 0.0075)  # MPa, truths of the null scenarios (the paper's prior range)
 BANDS = ((0.0, 10.0, "<10"), (10.0, 25.0, "10-25"), (25.0, float("inf"), ">=25"))
@@ -162,4 +162,6 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    cli.run(main)
+    from torchfra.cli import run
+
+    run(main)
