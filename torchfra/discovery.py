@@ -63,14 +63,18 @@ class NoiseModel:
     sigma: float
     ell: float = 0.0
     estimated: dict = field(default_factory=dict)
+    dof: float | None = None  # effective degrees of freedom of an estimated sigma^2 (None: sigma known)
+
+    def correlation(self, X: np.ndarray) -> np.ndarray:
+        """The points' correlation matrix (P, P)."""
+        d2 = ((X[:, None, :] - X[None, :, :]) ** 2).sum(-1)
+        return np.exp(-d2 / (2 * self.ell**2)) if self.ell > 0 else np.eye(len(X))
 
     def factor(self, X: np.ndarray) -> np.ndarray | None:
         """Lower Cholesky factor of the points' correlation matrix (None when independent)."""
         if self.ell <= 0:
             return None
-        d2 = ((X[:, None, :] - X[None, :, :]) ** 2).sum(-1)
-        C = np.exp(-d2 / (2 * self.ell**2)) + 1e-8 * np.eye(len(X))
-        return linalg.cholesky(C, lower=True)
+        return linalg.cholesky(self.correlation(X) + 1e-8 * np.eye(len(X)), lower=True)
 
 
 def estimate_noise(rec: Recording) -> NoiseModel:
@@ -109,37 +113,90 @@ def estimate_noise(rec: Recording) -> NoiseModel:
         if good:
             rr, pp = np.array(good).T
             ell = float(np.sqrt(np.sum(rr**4) / np.sum(-2 * np.log(pp) * rr**2)))
+    # sigma^2-hat ~ sigma^2 chi^2_nu / nu: Gaussian second differences have variance 6 sigma^2 and
+    # correlations -4/6, 1/6 at lags 1, 2 in time, so var(sigma^2-hat) = (70/36) 2 sigma^4 / n; points
+    # correlated in space share information (their squared correlations summed per point)
+    n2 = int(np.isfinite(D2).sum())
+    spatial = 1.0  # sum over points j of corr(i, j)^2, averaged over i
+    if ell > 0:
+        spatial += float(np.mean(np.sum(np.exp(-d**2 / (2 * ell**2)) ** 2, axis=1)))  # d_ii = inf: 0
+    nu = n2 / (70.0 / 36.0 * spatial)
     return NoiseModel(sigma, ell, {"sigma": True, "ell": True, "nearest_spacing_mm": near,
-                                   "neighbour_correlation": rho[0] if rho else 0.0})
+                                   "neighbour_correlation": rho[0] if rho else 0.0}, nu)
 
 
 class Whitener:
     """Maps residuals (K, P, 2) to independent standard normal residuals under the noise model,
-    honouring missing observations (NaN) frame by frame."""
+    honouring missing observations (NaN) frame by frame.
 
-    def __init__(self, rec: Recording, noise: NoiseModel):
-        self.noise, self.mask = noise, rec.mask
-        self.L = noise.factor(rec.X)
-        self._sub: dict[bytes, np.ndarray] = {}
+    Correlated noise is whitened in the eigenbasis of the points' correlation matrix, keeping the
+    directions whose eigenvalue is at least ``keep`` times the largest: a squared-exponential kernel's
+    small eigenvalues depend so strongly on the correlation length that whitening them with an
+    estimated length (or a real camera's kernel, never exactly squared-exponential) inflates them by
+    factors of ten; smooth model mismatch lives in the leading directions anyway. The whitened
+    values of a frame-component fill its first r slots, NaN (unobserved) after them."""
 
-    def __call__(self, R: np.ndarray) -> np.ndarray:
-        """R: (K, P, 2, ...) -> whitened, NaN where not observed."""
+    def __init__(self, rec: Recording, noise: NoiseModel, keep: float = 1e-2):
+        self.noise, self.mask, self.keep = noise, rec.mask, keep
+        self.C = None if noise.ell <= 0 else noise.correlation(rec.X)
+        self._basis: dict[bytes, tuple[np.ndarray, float]] = {}
+
+    def basis(self, m: np.ndarray) -> tuple[np.ndarray, float]:
+        """(B, half log det) for the observed points m: B (m.sum(), r) maps correlated values to
+        independent unit ones; half log det sums log sqrt(eigenvalue) over the kept directions."""
+        key = m.tobytes()
+        if key not in self._basis:
+            w, V = linalg.eigh(self.C[np.ix_(m, m)])
+            k = w >= self.keep * w.max()
+            self._basis[key] = (V[:, k] / np.sqrt(w[k]), 0.5 * float(np.sum(np.log(w[k]))))
+        return self._basis[key]
+
+    def __call__(self, R: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+        """R: (K, P, 2, ...) -> whitened, NaN where not observed (``mask`` (K, P, 2): the recording's)."""
+        mask = self.mask if mask is None else mask
         out = np.full(R.shape, np.nan)
         s = self.noise.sigma
         for k in range(R.shape[0]):
             for c in range(2):
-                m = self.mask[k, :, c]
+                m = mask[k, :, c]
                 if not m.any():
                     continue
                 x = R[k, m, c] / s
-                if self.L is not None:
-                    key = m.tobytes()
-                    if key not in self._sub:
-                        self._sub[key] = self.L if m.all() else linalg.cholesky(
-                            (self.L @ self.L.T)[np.ix_(m, m)], lower=True)
-                    x = linalg.solve_triangular(self._sub[key], x, lower=True)
-                out[k, m, c] = x
+                if self.C is None:
+                    out[k, m, c] = x
+                else:
+                    B, _ = self.basis(m)
+                    out[k, :B.shape[1], c] = np.tensordot(B.T, x, axes=1)
         return out
+
+    def log_det(self, frames: np.ndarray) -> float:
+        """log sqrt|noise covariance| of the whitened observations of ``frames`` (the same for every
+        model of the recording)."""
+        total = 0.0
+        for k in frames:
+            for c in range(2):
+                m = self.mask[k, :, c]
+                if not m.any():
+                    continue
+                if self.C is None:
+                    total += m.sum() * math.log(self.noise.sigma)
+                else:
+                    B, half_logdet = self.basis(m)
+                    total += B.shape[1] * math.log(self.noise.sigma) + half_logdet
+        return total
+
+    def calibrate(self, rec: Recording) -> None:
+        """Rescale sigma so that the recording's second differences in time, whitened, have the
+        variance 6 of independent unit noise (their noise is the residuals' noise, whatever the true
+        spatial kernel), and set the degrees of freedom of that estimate. Used whenever sigma or the
+        correlation length was estimated."""
+        D2 = np.diff(rec.Z, n=2, axis=0)
+        W = self(D2, np.isfinite(D2))
+        n = int(np.isfinite(W).sum())
+        factor = math.sqrt(float(np.nanmean(W**2)) / 6.0)
+        self.noise.sigma *= factor
+        self.noise.estimated["whitened_scale"] = factor
+        self.noise.dof = n / (70.0 / 36.0)
 
 
 # -- calibration by Gauss-Newton ------------------------------------------------------------------------
@@ -236,28 +293,13 @@ def gauss_newton(phys: ActuatorPhysics, white: Whitener, free: list[str], z0: di
     H = Jm.T @ Jm + np.diag(1 / sd**2)
     cov = np.linalg.inv(H)
     n_obs = r.size
-    loglik = -0.5 * float(r @ r) - 0.5 * n_obs * math.log(2 * math.pi) - _log_det_noise(white, fit_frames)
+    loglik = -0.5 * float(r @ r) - 0.5 * n_obs * math.log(2 * math.pi) - white.log_det(fit_frames)
     logprior = float(np.sum(stats.norm.logpdf(x, mu, sd))) - sum(c.log_prior_normalizer() for c in coords)
     sign, logdet = np.linalg.slogdet(cov)
     logev = loglik + logprior + 0.5 * len(free) * math.log(2 * math.pi) + 0.5 * logdet
     e_all = white(Z - ev.Y)
     return Fit(list(free), {n: z[n] for n in free}, cov, loglik, logprior, logev, e_all, ev, solves,
                time.perf_counter() - t0, converged)
-
-
-def _log_det_noise(white: Whitener, frames: np.ndarray) -> float:
-    """log |noise covariance| of the observed entries of ``frames`` (the same for every model)."""
-    total = 0.0
-    for k in frames:
-        for c in range(2):
-            m = white.mask[k, :, c]
-            if not m.any():
-                continue
-            total += m.sum() * math.log(white.noise.sigma)
-            if white.L is not None:
-                L = white.L if m.all() else linalg.cholesky((white.L @ white.L.T)[np.ix_(m, m)], lower=True)
-                total += float(np.sum(np.log(np.diag(L))))
-    return total
 
 
 # -- locate -------------------------------------------------------------------------------------------
@@ -274,22 +316,50 @@ def _bh(p: np.ndarray, alpha: float) -> np.ndarray:
     return out
 
 
-def consistency(E: np.ndarray, frames: np.ndarray, d: int) -> dict:
-    """Global chi^2 test of whitened residuals E (K, P, 2) over ``frames`` (d fitted parameters)."""
+def consistency(E: np.ndarray, frames: np.ndarray, d: int, noise_dof: float | None = None) -> dict:
+    """Global test of whitened residuals E (K, P, 2) over ``frames`` (d fitted parameters): chi^2 with
+    n - d degrees of freedom when sigma is known; when sigma was estimated with ``noise_dof``
+    effective degrees of freedom, the residual variance over sigma-hat^2 is F(n - d, noise_dof)
+    (the chi^2 band would be far too narrow: sigma-hat^2 is itself uncertain by sqrt(2 / noise_dof))."""
     e = E[frames]
     e = e[np.isfinite(e)]
     n = e.size
     ss = float(e @ e)
     dof = max(n - d, 1)
-    return {"statistic": ss, "dof": dof, "nis_per_observation": ss / n, "rms": float(np.sqrt(ss / n)),
-            "p_value": float(stats.chi2.sf(ss, dof)), "z": (ss - dof) / math.sqrt(2 * dof)}
+    if noise_dof is None:
+        p = float(stats.chi2.sf(ss, dof))
+        z = (ss - dof) / math.sqrt(2 * dof)
+    else:
+        m = _ratio_dof(E.shape[0], frames, n, dof, noise_dof)
+        p = float(stats.chi2.sf(m * ss / dof, m))
+        z = (ss / dof - 1) * math.sqrt(m / 2)
+    return {"statistic": ss, "dof": dof, "noise_dof": noise_dof, "nis_per_observation": ss / n,
+            "rms": float(np.sqrt(ss / n)), "p_value": p, "z": z}
+
+
+def _ratio_dof(K: int, frames: np.ndarray, n: int, dof: int, noise_dof: float) -> float:
+    """Degrees of freedom m of the scaled chi^2 that matches the variance of RSS / (dof sigma-hat^2)
+    under the noise model, sigma-hat^2 estimated from the second differences of the same recording
+    (``estimate_noise``). Delta method: var = 2/dof + 2/noise_dof - 2 cov, where the whitened residuals
+    and the second differences share the noise: cov(RSS, sum D2^2) = 2 sum_{k in frames} w_k o
+    (w_k: frame k's weight in the second differences, o observations per frame). Independent noise
+    gives var ~ 1.9/dof (chi^2 is about right); spatially correlated noise far more (sigma-hat rests
+    on fewer independent samples), which chi^2 alone would turn into false alarms."""
+    D = np.zeros((K - 2, K))
+    for i in range(K - 2):
+        D[i, i:i + 3] = (1.0, -2.0, 1.0)
+    w = (D**2).sum(axis=0)
+    o = n / max(len(frames), 1)
+    cov = 2.0 * float(w[frames].sum()) / (6.0 * len(frames) * (K - 2) * o)
+    var = max(2.0 / dof + 2.0 / noise_dof - 2.0 * cov, 0.5 * 2.0 / dof)
+    return 2.0 / var
 
 
 def locate(E: np.ndarray, rec: Recording, frames: np.ndarray, d: int, alpha: float, raw: np.ndarray,
-           sigma: float) -> dict:
+           sigma: float, noise_dof: float | None = None) -> dict:
     """Global test, onset in time and spatial clusters of the whitened residuals E (K, P, 2);
     ``raw`` residuals (mm) give the map in noise units."""
-    glob = consistency(E, frames, d)
+    glob = consistency(E, frames, d, noise_dof)
     # per frame
     Ek = E[frames]
     ss_k = np.nansum(Ek**2, axis=(1, 2))
@@ -445,11 +515,11 @@ def _json_default(o):
 
 
 def _fit_report(fit: Fit, white: Whitener, frames_fit, frames_held, d: int) -> dict:
-    g = consistency(fit.residual, frames_fit, d)
+    g = consistency(fit.residual, frames_fit, d, white.noise.dof)
     held = fit.residual[frames_held]
     held = held[np.isfinite(held)]
     held_logpdf = float(-0.5 * held @ held - 0.5 * held.size * math.log(2 * math.pi)
-                        - _log_det_noise(white, frames_held)) if held.size else None
+                        - white.log_det(frames_held)) if held.size else None
     return {"rms": g["rms"], "nis_per_observation": g["nis_per_observation"], "chi2_p_value": g["p_value"],
             "log_evidence": fit.log_evidence, "log_likelihood": fit.log_likelihood,
             "held_out_log_density": held_logpdf,
@@ -475,10 +545,13 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
         est = estimate_noise(rec)
     nm = NoiseModel(float(noise) if noise is not None else est.sigma,
                     float(correlation) if correlation is not None else est.ell,
-                    {"sigma": noise is None, "ell": correlation is None})
+                    {"sigma": noise is None, "ell": correlation is None},
+                    est.dof if noise is None else None)
     if not (nm.sigma > 0 and math.isfinite(nm.sigma)):
         raise DiagnosisError(f"noise sigma must be positive, got {nm.sigma}")
     white = Whitener(rec, nm)
+    if nm.estimated["sigma"] or (nm.estimated["ell"] and nm.ell > 0):
+        white.calibrate(rec)
     K = rec.n_frames
     held = np.arange(held_out_every - 1, K, held_out_every) if held_out_every > 1 else np.zeros(0, int)
     fit_frames = np.setdiff1d(np.arange(K), held)
@@ -493,7 +566,7 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
     raw = rec.Z - base.evaluation.Y
     # the omnibus test takes half the level, the candidates' score tests the other half (Bonferroni):
     # a specific alternative is found by its score test long before it shows in the chi^2 total
-    where = locate(base.residual, rec, fit_frames, 1, alpha / 2, raw, nm.sigma)
+    where = locate(base.residual, rec, fit_frames, 1, alpha / 2, raw, nm.sigma, nm.dof)
 
     # 2. rank: sensitivities of every candidate at the calibrated point, candidates at their null
     bar.phase("sensitivities of every candidate at the calibrated point")

@@ -169,8 +169,8 @@ class RenamedMaterial(Material):
     def psi(self, F, p, prm):
         return self.material.psi(F, p, self._own(prm))
 
-    def derivatives(self, F, p, prm, with_energy: bool = False):
-        return self.material.derivatives(F, p, self._own(prm), with_energy)
+    def derivatives(self, F, p, prm, with_energy: bool = False, tangent: bool = True):
+        return self.material.derivatives(F, p, self._own(prm), with_energy, tangent)
 
     def pressure_coefficients(self, F, prm):
         return self.material.pressure_coefficients(F, self._own(prm))

@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass, field
 
 import torch
-from torch.func import grad, jacfwd, vmap
+from torch.func import grad, jacfwd, jvp, vmap
 
 from ..params import ParameterError, ParameterInfo, check_parameters
 from .kinematics import cofactor, det3
@@ -60,7 +60,7 @@ class PointDerivatives:
 
     psi: torch.Tensor | None
     P: torch.Tensor
-    A: GaussPointTangent
+    A: GaussPointTangent | None  # None when only a residual was asked for
     Fp: torch.Tensor
 
 
@@ -109,18 +109,29 @@ class Material:
 
     def pressure_gradient(self, F, p, prm) -> torch.Tensor:
         """``d2psi/dFdp`` at Gauss points (..., 3, 3)."""
-        return self.derivatives(F, p, prm).Fp
+        return self.derivatives(F, p, prm, tangent=False).Fp
 
-    def derivatives(self, F, p, prm, with_energy: bool = False) -> PointDerivatives:
-        """Derived path: gradient and hessian of psi at each Gauss point by ``vmap(jacfwd(grad))``."""
+    def derivatives(self, F, p, prm, with_energy: bool = False, tangent: bool = True) -> PointDerivatives:
+        """Derived path: gradient and hessian of psi at each Gauss point by ``vmap(jacfwd(grad))``.
+        ``tangent=False`` (a residual) skips the hessian: the stress by ``grad`` and ``d2psi/dFdp``
+        by one forward-mode derivative of it along p (``A`` is then None)."""
         shape, x, pv = self._stack(F, p, prm)
+        psi = vmap(self._flat_psi)(x, pv).reshape(shape) if with_energy else None
+        if not tangent:
+            e_p = torch.zeros_like(x)
+            e_p[:, 9] = 1.0
+
+            def g_and_gp(xx, pp, ee):
+                return jvp(lambda y: grad(self._flat_psi)(y, pp), (xx,), (ee,))
+
+            g, gp = vmap(g_and_gp)(x, pv, e_p)
+            return PointDerivatives(psi, g[:, :9].reshape(*shape, 3, 3), None, gp[:, :9].reshape(*shape, 3, 3))
 
         def g2(xx, pp):
             g = grad(self._flat_psi)(xx, pp)
             return g, g
 
         H, g = vmap(jacfwd(g2, has_aux=True))(x, pv)
-        psi = vmap(self._flat_psi)(x, pv).reshape(shape) if with_energy else None
         P = g[:, :9].reshape(*shape, 3, 3)
         A = H[:, :9, :9].reshape(*shape, 3, 3, 3, 3)
         Fp = H[:, :9, 9].reshape(*shape, 3, 3)
@@ -181,9 +192,9 @@ class NeoHookean(_PerturbedLagrangeVolume):
         return prm["C10"] * (I1bar - 3.0) + p * (J - 1.0) - p**2 / (2.0 * K)
 
 
-    def derivatives(self, F, p, prm, with_energy: bool = False) -> PointDerivatives:
+    def derivatives(self, F, p, prm, with_energy: bool = False, tangent: bool = True) -> PointDerivatives:
         if not self.fast:
-            return super().derivatives(F, p, prm, with_energy)
+            return super().derivatives(F, p, prm, with_energy, tangent)
         cof = cofactor(F)
         J = (F * cof).sum((-1, -2)) / 3.0
         H = cof / J[..., None, None]
@@ -222,9 +233,9 @@ class MooneyRivlin(_PerturbedLagrangeVolume):
     Null: ``C01 = 0`` is exactly :class:`NeoHookean` (same energy, same stress and tangent).
     Admissible: ``C10 > 0``, ``C01 >= 0`` (polyconvex, stable in every deformation).
 
-    Stress and tangent are derived from ``psi`` by torch.func. ``fast=True`` (default) evaluates
-    only the pressure terms in closed form, which are those of Neo-Hookean:
-    ``dpsi/dp = J - 1``, ``d2psi/dp2 = -D1/2``, ``d2psi/dFdp = cof F``.
+    ``fast=True`` (default) evaluates stress and tangent in closed form (``derivatives``; pinned to
+    the torch.func-derived path of ``fast=False`` in tests/test_materials.py); the pressure terms are
+    those of Neo-Hookean: ``dpsi/dp = J - 1``, ``d2psi/dp2 = -D1/2``, ``d2psi/dFdp = cof F``.
     """
 
     param_names = ("C10", "C01", "D1")
@@ -249,4 +260,39 @@ class MooneyRivlin(_PerturbedLagrangeVolume):
         K = 2.0 / prm["D1"]
         return (prm["C10"] * (J ** (-2.0 / 3.0) * I1 - 3.0) + prm["C01"] * (J ** (-4.0 / 3.0) * I2 - 3.0)
                 + p * (J - 1.0) - p**2 / (2.0 * K))
+
+    def derivatives(self, F, p, prm, with_energy: bool = False, tangent: bool = True) -> PointDerivatives:
+        """``fast``: closed form. With ``H = F^{-T}``, ``B = F F^T``, ``C = F^T F``, ``G = 2 (I1 F - F C)``
+        (= dI2/dF), ``c = 2 C10 J^{-2/3}``, ``d = C01 J^{-4/3}``, ``Q = G - 4/3 I2 H``:
+
+        - ``P = c (F - I1/3 H) + d Q + p J H``
+        - ``A = A_NeoHookean + d [-4/3 Q x H - 4/3 H x G + 4 F x F + 2 I1 d_ik d_JL - 2 d_ik C_LJ
+          - 2 F_iL F_kJ - 2 B_ik d_JL + 4/3 I2 H_iL H_kJ]`` (dense: the last terms have no rank-one form).
+        """
+        if not self.fast:
+            return super().derivatives(F, p, prm, with_energy, tangent)
+        nh = NeoHookean(fast=True).derivatives(F, p, {"C10": prm["C10"], "D1": prm["D1"]}, with_energy, tangent)
+        cof = nh.Fp
+        J = (F * cof).sum((-1, -2)) / 3.0
+        H = cof / J[..., None, None]
+        C = F.transpose(-1, -2) @ F
+        I1 = C.diagonal(dim1=-2, dim2=-1).sum(-1)
+        I2 = 0.5 * (I1**2 - (C * C).sum((-1, -2)))
+        G = 2.0 * (I1[..., None, None] * F - F @ C)
+        Q = G - (4.0 / 3.0 * I2)[..., None, None] * H
+        d = prm["C01"] * J ** (-4.0 / 3.0)
+        P = nh.P + d[..., None, None] * Q
+        psi = None if nh.psi is None else nh.psi + prm["C01"] * (J ** (-4.0 / 3.0) * I2 - 3.0)
+        if not tangent:
+            return PointDerivatives(psi, P, None, cof)
+        eye = torch.eye(3, dtype=F.dtype, device=F.device)
+        B = F @ F.transpose(-1, -2)
+        outer = lambda X, Y: torch.einsum("...ij,...kl->...ijkl", X, Y)  # noqa: E731
+        A01 = (-4.0 / 3.0 * (outer(Q, H) + outer(H, G)) + 4.0 * outer(F, F)
+               + (2.0 * I1)[..., None, None, None, None] * torch.einsum("ik,jl->ijkl", eye, eye)
+               - 2.0 * torch.einsum("ik,...lj->...ijkl", eye, C) - 2.0 * torch.einsum("...il,...kj->...ijkl", F, F)
+               - 2.0 * torch.einsum("...ik,jl->...ijkl", B, eye)
+               + (4.0 / 3.0 * I2)[..., None, None, None, None] * torch.einsum("...il,...kj->...ijkl", H, H))
+        A = nh.A.to_dense() + d[..., None, None, None, None] * A01
+        return PointDerivatives(psi, P, GaussPointTangent(dense=A), cof)
 

@@ -107,7 +107,7 @@ class Hex20Solid(Term):
             Kpp_inv = torch.linalg.inv(Kpp)
             p_e = -torch.einsum("nemk,nek->nem", Kpp_inv, rp0) if local is None else local
             p = torch.einsum("gm,nem->neg", self.Np, p_e)
-        d = self.material.derivatives(F, p, prm, with_energy=energy)
+        d = self.material.derivatives(F, p, prm, with_energy=energy, tangent=tangent)
         N, E = F.shape[:2]
         fe = torch.einsum("eg,negp->nep", w, _nodal_gradients(dN, d.P))
         psi = torch.einsum("eg,neg->n", w, d.psi) if energy else None
