@@ -560,7 +560,7 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
     # 1. calibrate the base model
     base_phys = ActuatorPhysics(rec, (), resolution, load_steps, cache)
     c10_0 = _initial_c10(base_phys, white, fit_frames, bar)
-    bar.phase("calibrating the base model (C10)")
+    bar.phase("calibrating the base model (C10)", bar.FIT_SOLVES + 2)
     base = gauss_newton(base_phys, white, ["C10"], {"C10": math.log(c10_0)}, fit_frames, progress=bar.tick)
     c10 = math.exp(base.z["C10"])
     raw = rec.Z - base.evaluation.Y
@@ -569,7 +569,7 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
     where = locate(base.residual, rec, fit_frames, 1, alpha / 2, raw, nm.sigma, nm.dof)
 
     # 2. rank: sensitivities of every candidate at the calibrated point, candidates at their null
-    bar.phase("sensitivities of every candidate at the calibrated point")
+    bar.phase("sensitivities of every candidate at the calibrated point", 1)
     full = ActuatorPhysics(rec, cands, resolution, load_steps, cache)
     ev_full = full.observe(full.null_point(c10))
     bar.tick(1)
@@ -592,7 +592,8 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
         if len(order) >= 2:
             trials.append((order[0]["name"], order[1]["name"]))
         for combo in trials:
-            bar.phase(f"refitting with {' + '.join(combo)}")
+            left = len(trials) - trials.index(combo)
+            bar.phase(f"refitting with {' + '.join(combo)}", left * bar.FIT_SOLVES)
             phys = ActuatorPhysics(rec, combo, resolution, load_steps, cache)
             free = ["C10"] + [p for c in combo for p in CANDIDATE_PARAMETERS[c]
                               if p not in next(r for r in ranking if r["name"] == c)["confounded_parameters"]]
@@ -684,7 +685,7 @@ def _initial_c10(phys: ActuatorPhysics, white: Whitener, frames, bar) -> float:
 
     c = COORDINATES["C10"]
     lo = c.prior_mean - 1.96 * c.prior_std
-    bar.phase("starting point of C10 (one solve, scaling law)")
+    bar.phase("starting point of C10 (one solve, scaling law)", bar.FIT_SOLVES + 3)
     steps = phys.at_steps({"C10": lo})
     bar.tick(1)
     if steps is None:
@@ -710,23 +711,35 @@ def _initial_c10(phys: ActuatorPhysics, white: Whitener, frames, bar) -> float:
 
 
 class _Progress:
-    """A labelled bar counting FE solves (each ~10-20 s at resolution 1)."""
+    """A labelled bar counting FE solves (each ~10-20 s at resolution 1) with elapsed time and an
+    estimate of the time left: the plan (solves still expected) is set as each phase starts, from the
+    typical counts (a Gauss-Newton fit takes about ``FIT_SOLVES`` solves); tqdm's rate turns it into
+    time."""
+
+    FIT_SOLVES = 4
 
     def __init__(self, enabled: bool):
-        self.enabled, self.bar, self.count = enabled, None, 0
+        self.enabled, self.bar = enabled, None
 
-    def phase(self, label: str):
+    def phase(self, label: str, expected: int | None = None):
+        """Start a phase; ``expected``: solves still expected in the whole diagnosis from here on."""
         if not self.enabled:
             return
         from tqdm.auto import tqdm
 
         if self.bar is None:
-            self.bar = tqdm(desc=label, unit="solve", bar_format="{desc}: {n} FE solves so far [{elapsed}]")
+            self.bar = tqdm(desc=label, unit="solve", total=expected,
+                            bar_format="{desc}{n}/~{total} FE solves [{elapsed} elapsed, ~{remaining} left]")
         self.bar.set_description(label)
+        if expected is not None:
+            self.bar.total = self.bar.n + expected
+            self.bar.refresh()
 
     def tick(self, n=1):
         if self.bar is not None:
             self.bar.update(1)
+            if self.bar.total is not None and self.bar.n >= self.bar.total:
+                self.bar.total = self.bar.n + 1  # a fit that takes longer than typical
 
     def close(self):
         if self.bar is not None:
