@@ -3,8 +3,9 @@
 The diagnosis of a recording (DESIGN §1.4):
 
 1. **Calibrate** the base model (C10) by Gauss-Newton on the posterior with the exact
-   sensitivities (a Laplace posterior; verified against the exact grid posterior of the paper's
-   one-parameter experiment in tests/test_discovery.py).
+   sensitivities (a Laplace posterior: MAP, covariance and log evidence verified against the exact
+   posterior by quadrature, one and two parameters, on a nonlinear scaling-law stand-in for the
+   actuator in tests/test_discovery.py).
 2. **Locate.** Whitened residuals over points x frames with the noise model (i.i.d. or spatially
    correlated with a squared-exponential kernel; sigma and the correlation length are estimated
    from frame-to-frame differences when not given). Global test: the residual sum of squares
