@@ -61,8 +61,9 @@ def run_case(case: dict, a, out: Path, diagnose) -> dict:
         gen.update(resolution=1, frames=6)
     rec, _, meta = scenarios.make_scenario(case["effect"], case["size"], **gen)
     t0 = time.perf_counter()
-    d = diagnose(rec, noise=a.noise, correlation=case["correlation"] or None, run_dir=out / "diag" / case["case"],
-                 progress=a.verbose)
+    known = not a.estimate_noise  # else the diagnosis estimates sigma and the correlation length itself
+    d = diagnose(rec, noise=a.noise if known else None, correlation=(case["correlation"] or None) if known else None,
+                 run_dir=out / "diag" / case["case"], progress=a.verbose)
     seconds = time.perf_counter() - t0
     decision = str(d["decision"])
     return {
@@ -72,6 +73,8 @@ def run_case(case: dict, a, out: Path, diagnose) -> dict:
         "correlated": bool(case["correlation"]), "correlation_length": case["correlation"],
         "expected": meta["expected"], "decision": decision, "correct": scenarios.is_correct(case["effect"], decision),
         "detected": bool(d["mismatch_detected"]["detected"]),
+        "noise_estimated": bool(a.estimate_noise), "sigma_used": float(d["noise"]["sigma"]),
+        "correlation_used": float(d["noise"]["correlation_length_mm"]),
         "rms_before": float(d["fit_before"]["rms"]), "rms_after": float(d["fit_after"]["rms"]),
         "solves": int(d["cost"]["solves"]), "seconds": float(d["cost"].get("seconds", seconds)),
         "generation": {"resolution": meta["generation"]["resolution"], "frames": meta["generation"]["frames"],
@@ -120,6 +123,8 @@ def main(argv=None) -> dict:
     p.add_argument("--correlation", default="0",
                    help="comma list of noise correlation lengths ell (mm); 0 is i.i.d. noise")
     p.add_argument("--out", default="runs/scenarios", help="output folder")
+    p.add_argument("--estimate-noise", action="store_true",
+                   help="do not tell the diagnosis sigma and the correlation length: it estimates them")
     p.add_argument("--quick", action="store_true",
                    help="smoke run: generation at resolution 1 with 6 frames, largest size only, one seed")
     p.add_argument("--verbose", action="store_true", help="show the diagnosis' own progress")
@@ -142,6 +147,9 @@ def main(argv=None) -> dict:
     results = out / "results.json"
     rows = {r["case"]: r for r in json.loads(results.read_text())["rows"]} if results.exists() else {}
     todo = cases(effects, 1 if a.quick else a.seeds, correlations, a.quick)
+    if a.estimate_noise:
+        for c in todo:
+            c["case"] += "_estnoise"
     reused = sum(c["case"] in rows for c in todo)
     print(f"{len(todo)} cases, {reused} reused from {results}" if reused else f"{len(todo)} cases")
     t0 = time.perf_counter()
