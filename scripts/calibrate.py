@@ -3,6 +3,7 @@ Eqs. 21-23), its nonlinear-slave variant, the restart EnKF and the exact grid po
 
     python scripts/calibrate.py --config seed                  # the paper's experiment (§4.1)
     python scripts/calibrate.py --recording my_dic.csv --noise 0.5 --name bench_test
+    python scripts/calibrate.py --recording vic3d_exports/ --pressure trace.csv --landmarks lm.csv --name test1
 
 writes runs/<name>/: summary.json, bands.png, pdfs.png, TensorBoard events; the forward ensemble is
 cached in runs/forward_cache/<settings>/ (shared by runs with the same prior, mesh and load) and the restart filter checkpoints after every step, so a killed
@@ -23,6 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import torch  # noqa: E402
 
 from torchfra.calibration import SEED, CalibrationConfig, forward_config, forward_dir, run_calibration  # noqa: E402
+from torchfra.io.dic_import import add_arguments, recording_path  # noqa: E402
 from torchfra.recordings import read_recording  # noqa: E402
 from torchfra.report.calibration import write_calibration_outputs  # noqa: E402
 
@@ -50,7 +52,9 @@ def main(argv=None) -> dict:
     p.add_argument("--config", choices=sorted(CONFIGS), default="seed", help="named settings to start from")
     p.add_argument("--name", default=None, help="run name: outputs go to <runs-dir>/<name>/ (default: the config)")
     p.add_argument("--runs-dir", default="runs")
-    p.add_argument("--recording", default=None, help="CSV/NPZ recording (default: synthetic at --truth)")
+    p.add_argument("--recording", default=None,
+                   help="CSV/NPZ recording (default: synthetic at --truth), or with --pressure a DIC export "
+                        "(a folder of per-frame files or one file), converted into runs/<name>/recording.csv")
     p.add_argument("--truth", type=float, default=None, help="C10 of the synthetic recording (MPa)")
     p.add_argument("--noise", type=float, default=None, help="observation noise std (mm)")
     p.add_argument("--members", type=int, default=None, help="ensemble size N_s")
@@ -61,15 +65,20 @@ def main(argv=None) -> dict:
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (recorded)")
     p.add_argument("--workers", type=int, default=2,
                    help="processes solving forward-ensemble chunks side by side (one per core)")
+    add_arguments(p)
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     torch.set_default_dtype(torch.float64)
+    if a.pressure is not None and a.recording is None:
+        raise ValueError("--pressure names the trace of a DIC export: give the export with --recording")
+    run_dir = Path(a.runs_dir) / (a.name or a.config)
+    if a.recording is not None:
+        a.recording = str(recording_path(a.recording, a, run_dir))
     overrides = {"recording": a.recording, "truth_c10": a.truth, "noise": a.noise, "members": a.members,
                  "resolution": a.mesh, "restart_every": a.restart_every, "coverage_seeds": a.coverage_seeds}
     config: CalibrationConfig = replace(CONFIGS[a.config], **{k: v for k, v in overrides.items() if v is not None})
     if a.no_restart:
         config = replace(config, restart=False)
-    run_dir = Path(a.runs_dir) / (a.name or a.config)
     t0 = time.perf_counter()
     if config.recording is not None:
         read_recording(config.recording)  # refuse a bad file before starting any FE work

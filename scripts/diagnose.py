@@ -3,6 +3,7 @@ base model, rank the candidate physics by score tests, refit the best and decide
 
     python scripts/diagnose.py my_dic.csv --noise 1.0 --name my_diag
     python scripts/diagnose.py my_dic.csv --candidates gravity,compliant_base
+    python scripts/diagnose.py matchid_exports/ --pressure trace.csv --landmarks corners.csv   # a DIC export
 
 writes runs/<name>/: diagnosis.json, residual_map.png, residual_over_time.png, ranking.png,
 observed_vs_models.png, posterior_added.png (when a candidate is accepted), TensorBoard events,
@@ -18,12 +19,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import torch  # noqa: E402
 
 from torchfra.discovery import ALL_CANDIDATES, DiagnosisError, diagnose  # noqa: E402
+from torchfra.io.dic_import import add_arguments, recording_path  # noqa: E402
 from torchfra.recordings import read_recording  # noqa: E402
 
 
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("recording", help="CSV/NPZ recording (torchfra format; scripts/import_dic.py converts DIC exports)")
+    p.add_argument("recording", help="CSV/NPZ recording (torchfra format), or with --pressure a DIC export (a folder "
+                                     "of per-frame files or one file), converted into runs/<name>/recording.csv")
     p.add_argument("--noise", type=float, default=None, help="noise std (mm); default: estimated from the frames")
     p.add_argument("--correlation", type=float, default=None,
                    help="spatial noise correlation length (mm); 0 = independent; default: estimated")
@@ -35,6 +38,7 @@ def main(argv=None) -> dict:
     p.add_argument("--alpha", type=float, default=0.01, help="test level")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (recorded)")
     p.add_argument("--quiet", action="store_true")
+    add_arguments(p)
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     cands = "all" if a.candidates == "all" else [c.strip() for c in a.candidates.split(",") if c.strip()]
@@ -42,8 +46,8 @@ def main(argv=None) -> dict:
         bad = [c for c in cands if c not in ALL_CANDIDATES]
         if bad:
             raise DiagnosisError(f"--candidates: unknown candidate {bad[0]!r}; choose from {', '.join(ALL_CANDIDATES)}")
-    rec = read_recording(a.recording)
     run_dir = Path(a.runs_dir) / (a.name or f"diagnose_{Path(a.recording).stem}")
+    rec = read_recording(recording_path(a.recording, a, run_dir))
     reused = len(list((run_dir / "solves").glob("solve_*.npz"))) if (run_dir / "solves").exists() else 0
     if reused and not a.quiet:
         print(f"resuming {run_dir}: {reused} FE solves on disk are reused")

@@ -354,15 +354,9 @@ def test_import_dic_round_trip(tmp_path, capsys, fmt):
 
 
 def test_import_dic_identity_for_exports_already_in_the_model_frame(tmp_path):
-    truth, U, lost = face_recording(1)
-    rows = lambda k: "".join(",".join(f"{full(v)}" for v in [*truth.X[i], *(np.nan * U[k, i] if lost[k, i] else U[k, i])])
-                             + "\n" for i in range(len(truth.X)))
-    for k in range(4):
-        write(tmp_path / "e" / f"frame{k}.csv", "x [mm],y [mm],z [mm],u [mm],v [mm],w [mm]\n" + rows(k))
-    trace = write(tmp_path / "p.csv", "time,pressure [MPa]\n" + "".join(
-        f"{full(ti)},{full(p)}\n" for ti, p in zip(truth.times, truth.pressure)))
+    truth, export, trace = _identity_export(tmp_path)
     out = tmp_path / "rec.npz"
-    assert import_dic.main([str(tmp_path / "e"), "--pressure", str(trace), "--out", str(out),
+    assert import_dic.main([str(export), "--pressure", str(trace), "--out", str(out),
                             "--camera-to-model", "identity"]) == 0
     assert_same(read_recording(out), truth)
     assert (tmp_path / "rec.import.json").exists()
@@ -389,3 +383,48 @@ def test_import_dic_errors_are_one_paragraph_and_exit_code_2(tmp_path, capsys, c
     err = capsys.readouterr().err
     assert message in " ".join(err.split()) and "Traceback" not in err and "\n\n" not in err.strip()
     assert not (tmp_path / "r.csv").exists()
+
+
+def _identity_export(tmp_path):
+    truth, U, lost = face_recording(1)
+    rows = lambda k: "".join(",".join(f"{full(v)}" for v in [*truth.X[i], *(np.nan * U[k, i] if lost[k, i] else U[k, i])])
+                             + "\n" for i in range(len(truth.X)))
+    for k in range(4):
+        write(tmp_path / "e" / f"frame{k}.csv", "x [mm],y [mm],z [mm],u [mm],v [mm],w [mm]\n" + rows(k))
+    trace = write(tmp_path / "p.csv", "time,pressure [MPa]\n" + "".join(
+        f"{full(ti)},{full(p)}\n" for ti, p in zip(truth.times, truth.pressure)))
+    return truth, tmp_path / "e", trace
+
+
+def test_diagnose_and_calibrate_take_a_dic_export_directly(tmp_path, monkeypatch, capsys):
+    """With --pressure, the scripts' recording argument is a DIC export: converted into
+    runs/<name>/recording.csv (the import report printed) and that recording is what they use."""
+    truth, export, trace = _identity_export(tmp_path)
+    diagnose_script = load_script("diagnose")
+    seen = {}
+
+    def fake_diagnose(rec, **kw):
+        seen["diagnose"] = rec
+        raise SystemExit(0)
+
+    monkeypatch.setattr(diagnose_script, "diagnose", fake_diagnose)
+    with pytest.raises(SystemExit):
+        diagnose_script.main([str(export), "--pressure", str(trace), "--camera-to-model", "identity",
+                              "--runs-dir", str(tmp_path / "runs"), "--name", "d"])
+    assert_same(seen["diagnose"], truth)
+    assert (tmp_path / "runs" / "d" / "recording.csv").exists()
+    assert "Imported 4 frames" in " ".join(capsys.readouterr().out.split())
+
+    calibrate_script = load_script("calibrate")
+
+    def fake_calibration(config, run_dir):
+        seen["calibrate"] = read_recording(config.recording)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(calibrate_script, "run_calibration", fake_calibration)
+    with pytest.raises(SystemExit):
+        calibrate_script.main(["--recording", str(export), "--pressure", str(trace), "--camera-to-model", "identity",
+                               "--runs-dir", str(tmp_path / "runs"), "--name", "c", "--workers", "1"])
+    assert_same(seen["calibrate"], truth)
+    with pytest.raises(ValueError, match="give the export with --recording"):
+        calibrate_script.main(["--pressure", str(trace), "--runs-dir", str(tmp_path / "runs"), "--workers", "1"])
