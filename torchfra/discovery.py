@@ -448,11 +448,13 @@ def rank(E: np.ndarray, J: np.ndarray, names: list[str], base: list[str], candid
         s_full = np.linalg.norm(S, axis=0)
         s_perp = np.linalg.norm(U, axis=0)
         frac = s_perp / np.maximum(s_full, 1e-300)
-        # directions the base parameters absorb entirely (to the sensitivities' precision) are not
-        # testable; mostly absorbed ones (< confound_tol) are tested but reported as confounded
-        keep = frac > 1e-6
+        # directions the base parameters mostly absorb (< confound_tol of the sensitivity survives the
+        # projection) are reported as confounded and not tested: what survives of them is the
+        # nonlinearity of the twin, and normalized it would pose as a direction of its own (it made a
+        # pressure offset "coincide" with a fiber stiffness through the gain's remainder)
+        keep = frac >= confound_tol
         confounded = [p for p, f in zip(CANDIDATE_PARAMETERS[c], frac) if f < confound_tol]
-        untestable = [p for p, k in zip(CANDIDATE_PARAMETERS[c], keep) if not k]
+        untestable = [p for p, f in zip(CANDIDATE_PARAMETERS[c], frac) if f < 1e-6]  # absorbed exactly
         Uk = U[:, keep]
         if Uk.shape[1]:
             Qu, Ru = np.linalg.qr(Uk)
