@@ -16,7 +16,7 @@ from torchfra import fem
 from torchfra.calibration import synthetic_recording
 from torchfra.discovery import (DiagnosisError, NoiseModel, Whitener, consistency, diagnose, estimate_noise,
                                 locate, rank)
-from torchfra.physics import CANDIDATE_PARAMETERS
+from torchfra.physics import CANDIDATE_PARAMETERS, COORDINATES
 from torchfra.recordings import Recording
 
 
@@ -99,10 +99,11 @@ def test_score_statistic_equals_the_fitted_drop_and_flags_confounding():
     names = ["C10", "C01", "density", "c_n", "c_t", "pressure_gain", "pressure_offset", "D1", "E_fiber"]
     J = np.zeros(shape + (len(names),))
     J[..., 0] = b
-    J[..., names.index("density")] = s1
+    # sensitivities per prior std (a change of one prior std moves the observations by O(noise))
+    J[..., names.index("density")] = s1 / COORDINATES["density"].prior_std
     J[..., names.index("pressure_gain")] = 3.0 * b + 1e-4 * rng.standard_normal(shape)  # confounded
     for n in ("C01", "c_n", "c_t", "pressure_offset", "D1", "E_fiber"):
-        J[..., names.index(n)] = rng.standard_normal(shape)
+        J[..., names.index(n)] = rng.standard_normal(shape) / COORDINATES[n].prior_std
     y = 0.3 * s1 + rng.standard_normal(shape)
     bf = b.ravel()
     e = y.ravel() - bf * (bf @ y.ravel()) / (bf @ bf)
@@ -114,6 +115,9 @@ def test_score_statistic_equals_the_fitted_drop_and_flags_confounding():
     assert abs(top["score"] - rss_drop) < 1e-8 * rss_drop
     sensor = next(r for r in rows if r["name"] == "pressure_sensor")
     assert sensor["confounded_parameters"] == ["pressure_gain"] and sensor["confounded_with"] == ["C10"]
+    # the gain's remainder could not show a change within 3 prior stds at this noise: not tested
+    assert sensor["untestable_parameters"] == ["pressure_gain"] and sensor["tested_parameters"] == ["pressure_offset"]
+    assert sensor["detectable_change"]["pressure_gain"] > 3 * COORDINATES["pressure_gain"].prior_std
 
 
 @pytest.mark.parametrize("ell", [0.0, 3.0])
@@ -257,3 +261,16 @@ def stats_norm_logpdf(z, coordinate):
     """log of the truncated Gaussian prior density of a coordinate (as gauss_newton uses it)."""
     return (-0.5 * ((z - coordinate.prior_mean) / coordinate.prior_std) ** 2
             - math.log(coordinate.prior_std * math.sqrt(2 * math.pi)) - coordinate.log_prior_normalizer())
+
+
+def test_unit_mistakes_are_refused_before_any_fit(offset_recording):
+    """Pressures in kPa are refused before any FE work; displacements in metres (1000x too small for
+    any C10 of the prior) after the one starting solve, naming the likely unit, never fitted."""
+    rec = grid_recording(K=8, n=4)
+    rec.pressure = rec.pressure * 1e3  # kPa
+    with pytest.raises(DiagnosisError, match="Pressures in kPa or Pa instead of MPa"):
+        diagnose(rec, noise=1.0, progress=False)
+    metres = Recording(offset_recording.frames, offset_recording.times, offset_recording.pressure,
+                       offset_recording.point_ids, offset_recording.X, offset_recording.Z * 1e-3, "metres.csv")
+    with pytest.raises(DiagnosisError, match="smaller than the model's for the stiffest C10.*metres"):
+        diagnose(metres, noise=3e-4, correlation=0.0, candidates=["gravity"], progress=False, load_steps=6)

@@ -47,6 +47,7 @@ from .physics import CANDIDATE_PARAMETERS, COORDINATES, ActuatorPhysics, Evaluat
 from .recordings import Recording, RecordingError
 
 ALL_CANDIDATES = tuple(sorted(CANDIDATE_PARAMETERS))
+MAX_PRESSURE = 0.5  # MPa: beyond any pressure the soft actuator survives (a unit mistake)
 
 
 class DiagnosisError(ValueError):
@@ -425,7 +426,8 @@ def _clusters(X: np.ndarray, sig: np.ndarray, rms: np.ndarray, ids: np.ndarray) 
 # -- rank -----------------------------------------------------------------------------------------------
 
 def rank(E: np.ndarray, J: np.ndarray, names: list[str], base: list[str], candidates, frames: np.ndarray,
-         alpha: float, power: float = 0.8, confound_tol: float = 0.1, group_tol: float = 0.95) -> list[dict]:
+         alpha: float, power: float = 0.8, confound_tol: float = 0.1, group_tol: float = 0.95,
+         plausible: float = 3.0) -> list[dict]:
     """Score tests of the candidates at the calibrated base point.
 
     E: whitened residuals (K, P, 2); J: whitened sensitivities (K, P, 2, d) for ``names`` (base
@@ -439,7 +441,6 @@ def rank(E: np.ndarray, J: np.ndarray, names: list[str], base: list[str], candid
     n_base = e.size - len(base)
     excess = max(float(e_perp @ e_perp) - n_base, 1e-12)
     rows, bases = [], {}
-    crit1 = None
     for c in candidates:
         cols = [names.index(p) for p in CANDIDATE_PARAMETERS[c]]
         S = Jm[:, cols]
@@ -448,13 +449,19 @@ def rank(E: np.ndarray, J: np.ndarray, names: list[str], base: list[str], candid
         s_full = np.linalg.norm(S, axis=0)
         s_perp = np.linalg.norm(U, axis=0)
         frac = s_perp / np.maximum(s_full, 1e-300)
-        # directions the base parameters mostly absorb (< confound_tol of the sensitivity survives the
-        # projection) are reported as confounded and not tested: what survives of them is the
-        # nonlinearity of the twin, and normalized it would pose as a direction of its own (it made a
-        # pressure offset "coincide" with a fiber stiffness through the gain's remainder)
-        keep = frac >= confound_tol
-        confounded = [p for p, f in zip(CANDIDATE_PARAMETERS[c], frac) if f < confound_tol]
-        untestable = [p for p, f in zip(CANDIDATE_PARAMETERS[c], frac) if f < 1e-6]  # absorbed exactly
+        # a parameter is tested when the recording could show it: the smallest change detectable
+        # (80 % power at this level, one parameter) along what survives the projection off the base
+        # must lie within ``plausible`` prior stds. A twin of a base parameter (a pressure gain: 0.04 %
+        # of its sensitivity survives C10) is then left out at realistic noise, where its remainder,
+        # normalized, would pose as a direction of its own; a small but real remainder (Mooney-Rivlin's
+        # C01 keeps ~0.3 % beside C10) is tested when the data are precise enough to see it
+        names_c = CANDIDATE_PARAMETERS[c]
+        nc1 = _noncentrality(stats.chi2.isf(alpha, 1), 1, power)
+        detectable = {pn: float(math.sqrt(nc1) / sp) for pn, sp, f in zip(names_c, s_perp, frac) if f > 1e-6}
+        keep = np.array([pn in detectable and detectable[pn] < plausible * COORDINATES[pn].prior_std
+                         for pn in names_c], dtype=bool)
+        confounded = [pn for pn, f in zip(names_c, frac) if f < confound_tol]
+        untestable = [pn for pn, k in zip(names_c, keep) if not k]
         Uk = U[:, keep]
         if Uk.shape[1]:
             Qu, Ru = np.linalg.qr(Uk)
@@ -463,16 +470,13 @@ def rank(E: np.ndarray, J: np.ndarray, names: list[str], base: list[str], candid
             qk = Uk.shape[1]
             p = float(stats.chi2.sf(lm, qk))
             bases[c] = Qu
-            # smallest detectable effect per parameter: noncentrality needed for `power` at level alpha
-            crit = stats.chi2.isf(alpha, qk)
-            nc = _noncentrality(crit, qk, power)
-            detectable = {pn: float(math.sqrt(nc) / sp) for pn, sp, k in zip(CANDIDATE_PARAMETERS[c], s_perp, keep) if k}
         else:
-            lm, p, qk, detectable = 0.0, 1.0, 0, {}
+            lm, p, qk = 0.0, 1.0, 0
         rows.append({"name": c, "parameters": list(CANDIDATE_PARAMETERS[c]), "score": lm, "dof": qk, "p_value": p,
                      "explained_fraction": float(min(lm / excess, 1.0)) if lm > 0 else 0.0,
                      "confounded_with": (base if confounded else []),
                      "confounded_parameters": confounded, "untestable_parameters": untestable,
+                     "tested_parameters": [pn for pn, k in zip(names_c, keep) if k],
                      "detectable_change": detectable,
                      "projected_fraction": {pn: float(a / max(b, 1e-300)) for pn, a, b in
                                             zip(CANDIDATE_PARAMETERS[c], s_perp, s_full)}})
@@ -598,8 +602,7 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
             left = len(trials) - trials.index(combo)
             bar.phase(f"refitting with {' + '.join(combo)}", left * bar.FIT_SOLVES)
             phys = ActuatorPhysics(rec, combo, resolution, load_steps, cache)
-            free = ["C10"] + [p for c in combo for p in CANDIDATE_PARAMETERS[c]
-                              if p not in next(r for r in ranking if r["name"] == c)["confounded_parameters"]]
+            free = ["C10"] + [p for c in combo for p in next(r for r in ranking if r["name"] == c)["tested_parameters"]]
             z0 = phys.null_point(c10)
             ext = gauss_newton(phys, white, free, z0, fit_frames, progress=bar.tick)
             rep = _fit_report(ext, white, fit_frames, held, len(free))
@@ -677,6 +680,11 @@ def _check_recording(rec: Recording, held_out_every: int) -> None:
                              "to locate a mismatch")
     if not (rec.pressure > 0).any():
         raise DiagnosisError(f"{rec.source}: no frame has a positive pressure; nothing loads the actuator")
+    if np.nanmax(rec.pressure) > MAX_PRESSURE:
+        k = int(np.nanargmax(rec.pressure))
+        raise DiagnosisError(f"{rec.source}: frame {int(rec.frames[k])} records a pressure of {rec.pressure[k]:.4g} MPa; "
+                             f"the silicone actuator (C10 ~ 0.006 MPa) balloons far below {MAX_PRESSURE:g} MPa (the "
+                             "paper's largest is 0.022 MPa). Pressures in kPa or Pa instead of MPa?")
 
 
 def _initial_c10(phys: ActuatorPhysics, white: Whitener, frames, bar) -> float:
@@ -687,11 +695,15 @@ def _initial_c10(phys: ActuatorPhysics, white: Whitener, frames, bar) -> float:
     from scipy.optimize import minimize_scalar
 
     c = COORDINATES["C10"]
-    lo = c.prior_mean - 1.96 * c.prior_std
     bar.phase("starting point of C10 (one solve, scaling law)", bar.FIT_SOLVES + 3)
-    steps = phys.at_steps({"C10": lo})
-    bar.tick(1)
-    if steps is None:
+    # the softest solve that reaches the largest recorded pressure: the prior's 2.5 % quantile first
+    # (a very soft one balloons before full pressure), then stiffer ones
+    for lo in (c.prior_mean - 1.96 * c.prior_std, c.prior_mean - c.prior_std, c.prior_mean):
+        steps = phys.at_steps({"C10": lo})
+        bar.tick(1)
+        if steps is not None:
+            break
+    else:
         return math.exp(c.prior_mean)
     s, Ys, dYs = steps
     lam = phys.frame_loads({"C10": torch.tensor([lo], dtype=torch.float64)}).numpy()
@@ -708,9 +720,36 @@ def _initial_c10(phys: ActuatorPhysics, white: Whitener, frames, bar) -> float:
         e = white((Z - Y)[frames])
         return float(np.nansum(e**2))
 
-    res = minimize_scalar(misfit, bounds=(lo, c.prior_mean + 3 * c.prior_std), method="bounded",
-                          options={"xatol": 1e-4})
+    hi = c.prior_mean + 3 * c.prior_std
+    res = minimize_scalar(misfit, bounds=(lo, hi), method="bounded", options={"xatol": 1e-4})
+    _check_magnitude(phys.rec, frames, lambda logc: np.clip(lam * math.exp(lo - logc), 0.0, 1.0), s, Ys,
+                     res.x, lo, hi)
     return float(math.exp(res.x))
+
+
+def _check_magnitude(rec: Recording, frames, loads, s, Ys, logc: float, lo: float, hi: float) -> None:
+    """Refuse displacements no C10 of the prior range can produce (a unit mistake), before any fit:
+    at the bounds of the range the model's displacements (interpolated on the soft solve ``Ys`` at
+    load factors ``s``) are compared with the recorded ones."""
+    if not (abs(logc - hi) < 1e-2 or abs(logc - lo) < 1e-2):
+        return
+    lam = loads(logc)[frames]
+    Y = np.stack([np.interp(lam, s, Ys[:, p, c]) for p in range(Ys.shape[1]) for c in range(2)], -1)
+    Z = rec.Z[frames].reshape(len(frames), -1)
+    m = np.isfinite(Z)
+    ratio = float(np.linalg.norm(Z[m]) / max(np.linalg.norm(Y[m]), 1e-300))
+    if 0.3 < ratio < 3.0:
+        return
+    c10 = math.exp(logc)
+    if ratio < 1:
+        raise DiagnosisError(
+            f"{rec.source}: the recorded displacements are {1 / ratio:.3g} times smaller than the model's for the "
+            f"stiffest C10 of the prior ({c10:.3g} MPa) at the recorded pressures. Displacements in metres "
+            "instead of mm, or pressures in a unit too large (the contract is mm and MPa)? Nothing was fitted.")
+    raise DiagnosisError(
+        f"{rec.source}: the recorded displacements are {ratio:.3g} times larger than the model's for the softest "
+        f"C10 of the prior ({c10:.3g} MPa) at the recorded pressures. Displacements in a unit smaller than mm, "
+        "or pressures in a unit too small (the contract is mm and MPa)? Nothing was fitted.")
 
 
 class _Progress:
