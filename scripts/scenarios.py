@@ -34,7 +34,7 @@ def snr_band(snr: float, kind: str) -> str:
     return next(label for lo, hi, label in BANDS if lo <= snr < hi)
 
 
-def cases(effects, seeds: int, correlations, quick: bool) -> list[dict]:
+def cases(effects, seeds: int, correlations, quick: bool, sizes=None) -> list[dict]:
     """Every (effect, size, truth C10, trace, seed, noise correlation) to run, with a unique name."""
     out = []
     for effect in effects:
@@ -42,8 +42,9 @@ def cases(effects, seeds: int, correlations, quick: bool) -> list[dict]:
         if effect == "none":
             variants = [(0, c, "ramp") for c in NULL_C10] + [(0, 0.0062, "cycle")]  # the lag's trace too
         else:
-            sizes = range(1, len(e.sizes) + 1)
-            variants = [(k, 0.0062, None) for k in (sizes[-1:] if quick else sizes)]
+            every = range(1, len(e.sizes) + 1)
+            chosen = every[-1:] if quick else [k for k in every if sizes is None or k in sizes]
+            variants = [(k, 0.0062, None) for k in chosen]
         for size, c10, trace in variants:
             for seed in range(seeds):
                 for ell in correlations:
@@ -136,6 +137,7 @@ def main(argv=None) -> dict:
     p.add_argument("--correlation", default="0",
                    help="comma list of noise correlation lengths ell (mm); 0 is i.i.d. noise")
     p.add_argument("--out", default="runs/scenarios", help="output folder")
+    p.add_argument("--sizes", default="all", help="'all' or a comma list of effect sizes (1, 2, 3)")
     p.add_argument("--estimate-noise", action="store_true",
                    help="do not tell the diagnosis sigma and the correlation length: it estimates them")
     p.add_argument("--quick", action="store_true",
@@ -159,7 +161,8 @@ def main(argv=None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     results = out / "results.json"
     rows = {r["case"]: r for r in json.loads(results.read_text())["rows"]} if results.exists() else {}
-    todo = cases(effects, 1 if a.quick else a.seeds, correlations, a.quick)
+    sizes = None if a.sizes == "all" else {int(x) for x in a.sizes.split(",")}
+    todo = cases(effects, 1 if a.quick else a.seeds, correlations, a.quick, sizes)
     if a.estimate_noise:
         for c in todo:
             c["case"] += "_estnoise"

@@ -117,3 +117,29 @@ def test_grid_points_are_not_mesh_nodes():
         gap = np.linalg.norm(points[:, None] - mesh.nodes[None], axis=-1).min()
         assert gap > 0.05  # mm
         ObservationOperator(mesh, visible_faces(mesh, (1.0, 0.0, 0.0)), points=points)  # all on the face
+
+
+def test_suite_driver_selects_cases_and_tabulates_by_the_snr_after_the_base_fit():
+    """scripts/scenarios.py: --sizes picks effect sizes (nulls keep their truths and traces); the table
+    bands rows by the SNR left after the base model's C10 refit and averages wall time only over
+    diagnoses that solved everything themselves."""
+    from helpers import load_script
+
+    suite = load_script("scenarios")
+    todo = suite.cases(["none", "gravity"], 2, [0.0, 4.0], False, {3})
+    names = [c["case"] for c in todo]
+    assert len(todo) == (4 + 1) * 2 * 2 and len(set(names)) == len(names)
+    assert {c["size"] for c in todo if c["effect"] == "gravity"} == {3}
+    row = dict(effect="gravity", kind="library", correct=True, decision="gravity", rms_before=1.3, rms_after=1.0,
+               solves=12, snr=46.0)
+    rows = [row | dict(snr_after_base=30.0, band=suite.snr_band(30.0, "library"), seconds=100.0, solves_reused=0),
+            row | dict(snr_after_base=28.0, band=suite.snr_band(28.0, "library"), seconds=1.0, solves_reused=12),
+            row | dict(snr_after_base=8.0, band=suite.snr_band(8.0, "library"), seconds=50.0, solves_reused=0,
+                       correct=False, decision="none")]
+    lines = [line for line in suite.table(rows).splitlines() if line.startswith("| gravity")]
+    assert len(lines) == 2
+    low, high = sorted(lines, key=lambda line: line.split("|")[3])
+    cells = [c.strip() for c in high.split("|")]
+    assert cells[3] == ">=25" and cells[4] == "2" and cells[6] == "29" and cells[7] == "100%"
+    assert cells[-2] == "100", cells  # the reused diagnosis' 1 s is not a cost
+    assert [c.strip() for c in low.split("|")][7] == "0%"
