@@ -161,6 +161,11 @@ def test_node_points_reproduce_nodal_values_exactly():
     assert np.array_equal(op(u.numpy()), u[:, :, front][..., [1, 2]].numpy())
     tracked = op.nearest_point(0.0, 40.0)
     assert np.array_equal(op.points[tracked], [8.0, 0.0, 40.0])
+    # a model's Solution.u appends embedded (fiber) nodes after the mesh's: those are not observed
+    with_fibers = torch.cat([u, torch.randn(3, 4, 7, 3, dtype=u.dtype)], dim=2)
+    assert torch.equal(op(with_fibers), op(u))
+    with pytest.raises(ObservationError, match="shape"):
+        op(u[:, :, :-1])
 
 
 @pytest.mark.parametrize("mesh_name", ["distorted box", "half tube"])

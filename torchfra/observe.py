@@ -363,12 +363,15 @@ class ObservationOperator:
 
     def __call__(self, u):
         """Observations of displacements u: (..., n_nodes, 3) mm, e.g. (N, n_nodes, 3) or
-        (N, T, n_nodes, 3); torch tensor or numpy array. Returns (..., P, len(components)) mm, same type."""
-        if tuple(u.shape[-2:]) != (self.n_nodes, 3):
+        (N, T, n_nodes, 3); torch tensor or numpy array. Returns (..., P, len(components)) mm, same type.
+        A model's ``Solution.u`` may carry more nodes than the mesh (embedded fiber nodes are appended
+        after the mesh's own): the mesh's nodes, which come first, are the ones observed."""
+        if u.ndim < 2 or u.shape[-1] != 3 or u.shape[-2] < self.n_nodes:
             raise ObservationError(
-                f"displacements must have shape (..., {self.n_nodes}, 3) (n_nodes of the observed mesh), "
-                f"got {tuple(u.shape)}"
+                f"displacements must have shape (..., {self.n_nodes}, 3) (n_nodes of the observed mesh, more when "
+                f"a model appends nodes after them), got {tuple(u.shape)}"
             )
+        u = u[..., : self.n_nodes, :]
         # One sparse product over the node axis: (P, n_nodes) @ (n_nodes, everything else).
         lead, C = tuple(u.shape[:-2]), len(self.components)
         if isinstance(u, torch.Tensor):
