@@ -114,3 +114,20 @@ def test_residual_derivative_is_zero_for_parameters_the_model_does_not_use(model
     p["unused"] = torch.tensor([1.0], dtype=torch.float64)
     dr = residual_derivative(model, sol.a[:, 0], p, torch.tensor([0.5], dtype=torch.float64), {"unused": torch.ones(1)})
     assert float(dr.abs().max()) == 0.0
+
+
+def test_rigid_motion_reads_the_rigid_top_from_the_solution(model_and_sens):
+    """Model.rigid_motion: translation and rotation vector of the rigid top from Solution.a; every
+    rigid node then sits at translation + (R - I)(X - centroid) (the constraint's own definition)."""
+    model, sol, _ = model_and_sens
+    t, theta = model.rigid_motion(sol.a[0, -1])
+    assert float(torch.linalg.norm(theta)) > 1e-4  # the top does rotate in this test
+    top = np.unique(model.mesh.node_sets["zmax"])
+    dX = torch.as_tensor(model.X[top] - model.X[top].mean(axis=0))
+    expected = t + dX @ (fem.rotation_matrix(theta) - torch.eye(3, dtype=dX.dtype)).T
+    assert torch.allclose(sol.u[0, -1, top], expected, atol=1e-12, rtol=0)
+    with pytest.raises(ValueError, match="rigid body 1 does not exist"):
+        model.rigid_motion(sol.a[0, -1], body=1)
+    # Newton's work per output load level adds up to its total
+    assert sol.iterations_per_output.shape == (1, len(LOADS)) and (sol.iterations_per_output > 0).all()
+    assert sol.iterations_per_output.sum() == sol.iterations[0]

@@ -117,6 +117,19 @@ class Model:
         for node, v in zip(n, values):
             self._prescribed[int(3 * node + component)] = float(v)
 
+    def rigid_motion(self, a, body: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+        """Motion of rigid body ``body`` (in the order of :meth:`rigid` calls) from reduced unknowns
+        ``a`` (..., n_red), e.g. ``Solution.a``: the translation of its reference point (the centroid
+        of its nodes, mm) and its rotation vector (axis times angle, rad; ``fem.rotation_matrix``
+        turns it into R), each (..., 3). These are the last 6 entries per body of ``a``; a rigid
+        node X moves by ``translation + (R - I) (X - centroid)``."""
+        self.finalize()
+        if not 0 <= body < len(self.dofmap.bodies):
+            raise ValueError(f"rigid body {body} does not exist; the model has {len(self.dofmap.bodies)}")
+        cols = torch.as_tensor(self.dofmap.bodies[body].columns)
+        a = torch.as_tensor(a)
+        return a[..., cols[:3]], a[..., cols[3:]]
+
     def rigid(self, nodes) -> None:
         """The nodes move as one rigid body (finite rotation): a face that stays flat and undeformed."""
         self._editable()

@@ -65,7 +65,10 @@ class Solution:
     a: (N, T, n_red) reduced unknowns; status (N,): "converged" / "diverged";
     load_reached (N,); iterations, increments, cutbacks (N,); last_residual (N,): the last finite
     relative residual (NaN marks inadmissible states in ``residual_history``);
-    residual_history: per member, the relative residual of every Newton iteration.
+    residual_history: per member, the relative residual of every Newton iteration;
+    iterations_per_output (N, T): Newton iterations spent from the previous output load factor to
+    this one (-1 where not reached). ``a`` ends with 6 unknowns per rigid body (translation, rotation
+    vector): ``Model.rigid_motion`` reads them.
     """
 
     load_factors: np.ndarray
@@ -80,6 +83,7 @@ class Solution:
     residual_history: list[list[float]]
     timings: dict[str, float] = field(default_factory=dict)
     x_last: torch.Tensor | None = None  # (N, size) packed state [a, element pressures] at the last load
+    iterations_per_output: np.ndarray | None = None
 
     @property
     def converged(self) -> np.ndarray:
@@ -158,6 +162,7 @@ def solve(
     active = np.ones(N, dtype=bool)
     status = np.array([CONVERGED] * N, dtype=object)
     iterations, increments, cutbacks = np.zeros(N, int), np.zeros(N, int), np.zeros(N, int)
+    at_output = np.full((N, T), -1, dtype=np.int64)  # cumulative iterations when each output was reached
     last_res = np.full(N, np.nan)
     history: list[list[float]] = [[] for _ in range(N)]
     a_out = torch.full((N, T, n), float("nan"), dtype=dtype)
@@ -262,6 +267,7 @@ def solve(
                 velocity[m] = (x_conv[m] - x_prev[m]) / (lam_conv[m] - lam_prev[m])
                 if lam[m] == outs[nxt[m]]:
                     a_out[m, nxt[m]] = x[m, :n]
+                    at_output[m, nxt[m]] = iterations[m]
                     nxt[m] += 1
                     if nxt[m] == T:
                         x_last[m] = x[m]
@@ -325,8 +331,9 @@ def solve(
         done = torch.as_tensor(nxt > k)
         if done.any():
             u_out[done, k] = model.displacement(a_out[done, k], load(np.flatnonzero(nxt > k), outs[k]))
+    per_output = np.where(at_output >= 0, np.diff(at_output, axis=1, prepend=0), -1)
     return Solution(outs, u_out, a_out, status.astype(str), lam_conv.copy(), iterations, increments, cutbacks,
-                    last_res, history, timings, x_last)
+                    last_res, history, timings, x_last, per_output)
 
 
 def _euler_velocity(model: Model, pack: _Packing, params, dtype, backend: str, h: float = 1e-6) -> torch.Tensor:
