@@ -157,7 +157,8 @@ def synthetic_recording(c10: float, resolution: int = 1, points="nodes", noise: 
         op = ObservationOperator(mesh, faces, points=regular_grid(mesh, faces, float(points)))
     lam = pressure / solver.fwd.pressure
     distinct = np.unique(lam[lam > 0])
-    sol = fem.solve(solver.model, solver.params([c10]), distinct, solver.options(), progress=progress)
+    sol = fem.solve(solver.model, solver.params([c10]), distinct, solver.options(),
+                    progress=f"synthetic recording: FE solve at C10 = {c10:g} MPa" if progress else False)
     if sol.status[0] != "converged":
         raise RuntimeError(f"the model did not converge at C10 = {c10} (reached load {sol.load_reached[0]:.3f})")
     Y = op(sol.u[0, :, : mesh.n_nodes]).numpy()  # (distinct, P, 2)

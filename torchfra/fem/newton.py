@@ -134,7 +134,7 @@ def solve(
     params: dict[str, torch.Tensor],
     load_factors=(1.0,),
     options: NewtonOptions | None = None,
-    progress: bool = False,
+    progress: bool | str = False,
     start: WarmStart | None = None,
 ) -> Solution:
     """Solve ``model`` for every member (params: name -> (N,)) at the given load factors in (0, 1]
@@ -220,7 +220,9 @@ def solve(
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=100, desc=f"Newton, {N} members", unit="% load", bar_format="{l_bar}{bar}| {n:.0f}/{total}%")
+        label = progress if isinstance(progress, str) else f"Newton, {N} member{'s' if N > 1 else ''}"
+        bar = tqdm(total=100, desc=label, unit="% load",
+                   bar_format="{l_bar}{bar}| {n:.0f}/{total}% load [{elapsed} elapsed, ~{remaining} left]")
 
     if start is None:
         # Euler predictor for the first increment: dx/dlambda = -K^-1 dr/dlambda at the unloaded state.
