@@ -85,7 +85,8 @@ def run_case(case: dict, a, out: Path, diagnose) -> dict:
         "noise_estimated": bool(a.estimate_noise), "sigma_used": float(d["noise"]["sigma"]),
         "correlation_used": float(d["noise"]["correlation_length_mm"]),
         "rms_before": float(d["fit_before"]["rms"]), "rms_after": float(d["fit_after"]["rms"]),
-        "solves": int(d["cost"]["solves"]), "seconds": float(d["cost"].get("seconds", seconds)),
+        "solves": len(list(cached.glob("solve_*.npz"))),  # FE solves of the diagnosis: one file each
+        "seconds": float(d["cost"].get("seconds", seconds)),
         "solves_reused": before,  # solves found on disk from an earlier run: "seconds" then is not the cost
         "generation": {"resolution": meta["generation"]["resolution"], "frames": meta["generation"]["frames"],
                        "solves": meta["solves"], "seconds": meta["seconds"]},

@@ -566,7 +566,7 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
 
     # 1. calibrate the base model
     base_phys = ActuatorPhysics(rec, (), resolution, load_steps, cache)
-    c10_0 = _initial_c10(base_phys, white, fit_frames, bar)
+    c10_0, start_solves = _initial_c10(base_phys, white, fit_frames, bar)
     bar.phase("calibrating the base model (C10)", bar.FIT_SOLVES + 2)
     base = gauss_newton(base_phys, white, ["C10"], {"C10": math.log(c10_0)}, fit_frames, progress=bar.tick)
     c10 = math.exp(base.z["C10"])
@@ -615,7 +615,7 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
                 break
     bar.close()
     fit_after = accepted[2] if accepted else base_report
-    fe_solves = base.solves + 1 + sum(t["fit"]["solves"] for t in tried)
+    fe_solves = start_solves + base.solves + 1 + sum(t["fit"]["solves"] for t in tried)
     out = {
         "recording": rec.source,
         "frames": int(K), "points": int(rec.n_points), "observations": int(np.isfinite(rec.Z).sum()),
@@ -687,24 +687,27 @@ def _check_recording(rec: Recording, held_out_every: int) -> None:
                              "paper's largest is 0.022 MPa). Pressures in kPa or Pa instead of MPa?")
 
 
-def _initial_c10(phys: ActuatorPhysics, white: Whitener, frames, bar) -> float:
+def _initial_c10(phys: ActuatorPhysics, white: Whitener, frames, bar) -> tuple[float, int]:
     """A starting C10 for Gauss-Newton from one solve, by the scaling law of the incompressible
     rigid-fibre actuator: u(P, C10) ~ u(P C10_lo / C10, C10_lo) (DESIGN §1.3). The solve at a soft
-    C10_lo (the prior's 2.5 % quantile) covers every stiffer C10's load range; the recording's
-    misfit is then minimized over C10 on that one solve (golden section in log C10)."""
+    C10_lo (the prior's 2.5 % quantile, or a stiffer one when that balloons before full pressure)
+    covers every stiffer C10's load range; the recording's misfit is then minimized over C10 on that
+    one solve (bounded Brent in log C10). Returns (C10, FE solves spent)."""
     from scipy.optimize import minimize_scalar
 
     c = COORDINATES["C10"]
     bar.phase("starting point of C10 (one solve, scaling law)", bar.FIT_SOLVES + 3)
     # the softest solve that reaches the largest recorded pressure: the prior's 2.5 % quantile first
     # (a very soft one balloons before full pressure), then stiffer ones
+    solves = 0
     for lo in (c.prior_mean - 1.96 * c.prior_std, c.prior_mean - c.prior_std, c.prior_mean):
         steps = phys.at_steps({"C10": lo})
+        solves += 1
         bar.tick(1)
         if steps is not None:
             break
     else:
-        return math.exp(c.prior_mean)
+        return math.exp(c.prior_mean), solves
     s, Ys, dYs = steps
     lam = phys.frame_loads({"C10": torch.tensor([lo], dtype=torch.float64)}).numpy()
     Z = phys.rec.Z
@@ -724,7 +727,7 @@ def _initial_c10(phys: ActuatorPhysics, white: Whitener, frames, bar) -> float:
     res = minimize_scalar(misfit, bounds=(lo, hi), method="bounded", options={"xatol": 1e-4})
     _check_magnitude(phys.rec, frames, lambda logc: np.clip(lam * math.exp(lo - logc), 0.0, 1.0), s, Ys,
                      res.x, lo, hi)
-    return float(math.exp(res.x))
+    return float(math.exp(res.x)), solves
 
 
 def _check_magnitude(rec: Recording, frames, loads, s, Ys, logc: float, lo: float, hi: float) -> None:
