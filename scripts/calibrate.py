@@ -23,9 +23,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-from torchfra.calibration import SEED, CalibrationConfig, forward_config, forward_dir, run_calibration  # noqa: E402
+from torchfra.calibration import (SEED, CalibrationConfig, forward_config, forward_dir, run_calibration,  # noqa: E402
+                                  validate_recording)
 from torchfra.io.dic_import import add_arguments, recording_path  # noqa: E402
-from torchfra.recordings import read_recording  # noqa: E402
 from torchfra.report.calibration import write_calibration_outputs  # noqa: E402
 
 CONFIGS = {"seed": SEED}
@@ -59,6 +59,8 @@ def main(argv=None) -> dict:
     p.add_argument("--noise", type=float, default=None, help="observation noise std (mm)")
     p.add_argument("--members", type=int, default=None, help="ensemble size N_s")
     p.add_argument("--mesh", type=int, default=None, help="mesh resolution of the FE model")
+    p.add_argument("--forward-pressure", type=float, default=None,
+                   help="largest pressure of the forward ensemble (MPa; default the config's, 0.022)")
     p.add_argument("--no-restart", action="store_true", help="skip the restart filter (the FE-costly baseline)")
     p.add_argument("--restart-every", type=int, default=None, help="restart filter assimilates every n-th frame")
     p.add_argument("--coverage-seeds", type=int, default=None, help="noise re-draws for the coverage study")
@@ -75,13 +77,12 @@ def main(argv=None) -> dict:
     if a.recording is not None:
         a.recording = str(recording_path(a.recording, a, run_dir))
     overrides = {"recording": a.recording, "truth_c10": a.truth, "noise": a.noise, "members": a.members,
-                 "resolution": a.mesh, "restart_every": a.restart_every, "coverage_seeds": a.coverage_seeds}
+                 "resolution": a.mesh, "pressure": a.forward_pressure, "restart_every": a.restart_every, "coverage_seeds": a.coverage_seeds}
     config: CalibrationConfig = replace(CONFIGS[a.config], **{k: v for k, v in overrides.items() if v is not None})
     if a.no_restart:
         config = replace(config, restart=False)
     t0 = time.perf_counter()
-    if config.recording is not None:
-        read_recording(config.recording)  # refuse a bad file before starting any FE work
+    validate_recording(config)  # refuse a bad file before any FE work or helper process
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # run the cleanup below when killed politely
     helpers = start_forward_helpers(config, run_dir, a.workers - 1)
     try:

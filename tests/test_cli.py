@@ -22,6 +22,8 @@ def _script(args, tmp_path):
     (["scripts/calibrate.py", "--recording", "{tmp}/missing.csv"], "missing.csv: no such recording"),
     (["scripts/calibrate.py", "--recording", "{tmp}/folder.csv"], "folder.csv: is a folder, not a recording"),
     (["scripts/calibrate.py", "--recording", "{tmp}/utf16.csv"], "utf16.csv: the file is UTF-16; save it as UTF-8"),
+    (["scripts/calibrate.py", "--recording", "{tmp}/kpa.csv"], "pressures in kPa or Pa instead of MPa?"),
+    (["scripts/calibrate.py", "--recording", "{tmp}/high.csv"], "calibrate with --forward-pressure 0.03"),
     (["scripts/make_recording.py", "--out", "{tmp}/a_file/r.csv"], "a_file: File exists"),
     (["scripts/forward_uq.py", "--runs-dir", "{tmp}/a_file"], "a_file/forward: Not a directory"),
     (["scripts/fem_demo.py", "--runs-dir", "{tmp}/a_file"], "a_file/fem_demo: Not a directory"),
@@ -30,8 +32,12 @@ def test_scripts_end_a_wrong_input_with_one_paragraph(tmp_path, args, message):
     (tmp_path / "folder.csv").mkdir()
     (tmp_path / "utf16.csv").write_text("frame,time,pressure,point_id,X,Y,Z,uy,uz\n", encoding="utf-16")
     (tmp_path / "a_file").write_text("")
+    for name, p in (("kpa", 22.0), ("high", 0.03)):  # a point of the visible face; the last frame's pressure
+        (tmp_path / f"{name}.csv").write_text("frame,time,pressure,point_id,X,Y,Z,uy,uz\n"
+                                              f"0,0.5,0.01,1,8,0,30,0.1,0.2\n1,1.0,{p},1,8,0,30,0.2,0.4\n")
     args = [str(ROOT / args[0]), *(a.format(tmp=tmp_path) for a in args[1:])]
     out = _script(args, tmp_path)
+    assert not (tmp_path / "runs" / "forward_cache").exists()  # refused before any FE work or helper
     assert out.returncode == 2, out.stderr
     assert "Traceback" not in out.stderr and "Traceback" not in out.stdout
     assert out.stderr.startswith("error: ") and message in out.stderr

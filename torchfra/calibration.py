@@ -85,10 +85,27 @@ def load_factors(rec: Recording, pressure_max: float) -> np.ndarray:
     bad = np.flatnonzero((lam < -1e-12) | (lam > 1 + 1e-9))
     if bad.size:
         k = int(bad[0])
-        raise RecordingError(f"{rec.source}: frame {rec.frames[k]} has pressure {rec.pressure[k]:g} MPa, outside "
-                             f"the forward ensemble's range [0, {pressure_max:g}] MPa; rerun the forward "
-                             "ensemble with a larger pressure")
+        p = float(rec.pressure[k])
+        advice = ("the soft actuator balloons far below 0.5 MPa: pressures in kPa or Pa instead of MPa?" if p > 0.5
+                  else "a negative pressure is not a load of this model" if p < 0 else
+                  f"calibrate with --forward-pressure {float(np.max(rec.pressure)):g} (a forward ensemble up to the "
+                  "recording's largest pressure)")
+        raise RecordingError(f"{rec.source}: frame {rec.frames[k]} has pressure {p:g} MPa, outside the forward "
+                             f"ensemble's range [0, {pressure_max:g}] MPa; {advice}")
     return np.clip(lam, 0.0, 1.0)
+
+
+def validate_recording(config: CalibrationConfig) -> None:
+    """Refuse a recording file that cannot be calibrated (unreadable, pressures outside the forward
+    ensemble's range, points off the visible face) before any FE work or helper process starts."""
+    if config.recording is None:
+        return
+    from .recordings import read_recording
+
+    rec = read_recording(config.recording)
+    fwd_cfg = forward_config(config)
+    load_factors(rec, fwd_cfg.pressure)
+    recording_operator(ActuatorSolver(config.resolution, fwd=fwd_cfg).mesh, rec)
 
 
 def forecast_at_frames(Y_steps: np.ndarray, steps: np.ndarray, lam: np.ndarray, W) -> np.ndarray:
