@@ -274,3 +274,32 @@ def test_unit_mistakes_are_refused_before_any_fit(offset_recording):
                        offset_recording.point_ids, offset_recording.X, offset_recording.Z * 1e-3, "metres.csv")
     with pytest.raises(DiagnosisError, match="smaller than the model's for the stiffest C10.*metres"):
         diagnose(metres, noise=3e-4, correlation=0.0, candidates=["gravity"], progress=False, load_steps=6)
+
+
+def test_remaining_scores_expose_a_surrogate():
+    """Linear-Gaussian: the mismatch is made of two candidates' sensitivities. Fitting one leaves the
+    other's score test significant on the residual (a surrogate); fitting both leaves it at chi^2_1."""
+    from torchfra.discovery import _remaining_scores
+
+    rng = np.random.default_rng(7)
+    K, P = 20, 30
+    shape = (K, P, 2)
+    names = ["C10", "density", "pressure_offset"]
+    J = rng.standard_normal(shape + (3,))
+    y = 0.2 * J[..., 1] + 0.2 * J[..., 2] + rng.standard_normal(shape)
+
+    def residual(fitted):
+        A = J.reshape(-1, 3)[:, [names.index(n) for n in fitted]]
+        return (y.ravel() - A @ np.linalg.lstsq(A, y.ravel(), rcond=None)[0]).reshape(shape)
+
+    rows = [{"name": "gravity", "tested_parameters": ["density"]},
+            {"name": "pressure_sensor", "tested_parameters": ["pressure_offset"]}]
+    frames = np.arange(K)
+    partial = _remaining_scores(residual(["C10", "density"]), J, names, ["C10", "density"], rows, frames)
+    assert set(partial) == {"pressure_sensor"} and partial["pressure_sensor"]["p_value"] < 1e-6
+    both = _remaining_scores(residual(["C10", "density", "pressure_offset"]), J, names,
+                             ["C10", "density", "pressure_offset"], rows, frames)
+    assert both == {}
+    alone = _remaining_scores(residual(["C10", "density", "pressure_offset"]), J, names, ["C10", "density"], rows,
+                              frames)
+    assert alone["pressure_sensor"]["score"] < 1e-12  # nothing left along a fitted direction
