@@ -115,7 +115,7 @@ def test_score_statistic_equals_the_fitted_drop_and_flags_confounding():
     assert abs(top["score"] - rss_drop) < 1e-8 * rss_drop
     sensor = next(r for r in rows if r["name"] == "pressure_sensor")
     assert sensor["confounded_parameters"] == ["pressure_gain"] and sensor["confounded_with"] == ["C10"]
-    # the gain's remainder could not show a change within 3 prior stds at this noise: not tested
+    # the gain's remainder is its twin's nonlinearity: not tested, its detectable change reported
     assert sensor["untestable_parameters"] == ["pressure_gain"] and sensor["tested_parameters"] == ["pressure_offset"]
     assert sensor["detectable_change"]["pressure_gain"] > 3 * COORDINATES["pressure_gain"].prior_std
 
