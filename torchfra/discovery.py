@@ -90,7 +90,6 @@ def estimate_noise(rec: Recording) -> NoiseModel:
     if rec.n_frames < 3:
         raise DiagnosisError(f"{rec.source}: {rec.n_frames} frames; estimating the noise needs at least 3 "
                              "(or give --noise SIGMA)")
-    D = np.diff(Z, axis=0)
     D2 = np.diff(Z, n=2, axis=0)  # second differences remove a linear-in-time response too
     v = np.nanmean(D2**2) / 6.0  # var of x_{k+1} - 2 x_k + x_{k-1} for white noise: 6 sigma^2
     sigma = float(np.sqrt(v))
