@@ -35,13 +35,15 @@ def start_forward_helpers(config: CalibrationConfig, run_dir: Path, n: int) -> l
     """Extra processes that solve chunks of the same forward ensemble (they share the run folder
     through chunk locks, see torchfra.forward); none when the ensemble is already on disk."""
     fwd, where = forward_config(config), forward_dir(config, run_dir.parent)
-    done = where / "members" / f"chunk_{(fwd.members - 1) // fwd.chunk * fwd.chunk:05d}.npz"
-    if n <= 0 or (where / "forward.npz").exists() or done.exists():
+    per_file = 1 if fwd.method == "reduced" else fwd.chunk
+    done = all((where / "members" / f"chunk_{s:05d}.npz").exists() for s in range(0, fwd.members, per_file))
+    if n <= 0 or (where / "forward.npz").exists() or done:
         return []
     where.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, str(Path(__file__).with_name("forward_uq.py")), "--members", str(fwd.members),
            "--mesh", str(fwd.resolution), "--seed", str(fwd.seed), "--pressure", repr(fwd.pressure),
            "--load-steps", str(fwd.load_steps), "--chunk", str(fwd.chunk), "--threads", str(fwd.threads),
+           "--method", fwd.method,
            "--runs-dir", str(where.parent), "--out", where.name, "--quiet"]
     env = dict(os.environ, MKL_NUM_THREADS=str(fwd.threads), OMP_NUM_THREADS=str(fwd.threads))
     return [subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL) for _ in range(n)]

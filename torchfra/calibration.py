@@ -62,7 +62,9 @@ def forward_dir(config: CalibrationConfig, runs_dir) -> Path:
     """Where the forward ensemble of ``config`` is cached: ``<runs>/forward_cache/<settings>/``, shared by
     every calibration run with the same prior, mesh and load (a new recording needs no new FE work)."""
     f = forward_config(config)
-    return Path(runs_dir) / "forward_cache" / f"mesh{f.resolution}_N{f.members}_seed{f.seed}_P{f.pressure:g}_steps{f.load_steps}"
+    method = "" if f.method == "full" else f"_{f.method}"
+    return Path(runs_dir) / "forward_cache" / (f"mesh{f.resolution}_N{f.members}_seed{f.seed}_P{f.pressure:g}"
+                                               f"_steps{f.load_steps}{method}")
 
 
 def forward_config(config: CalibrationConfig) -> ForwardConfig:
@@ -193,29 +195,44 @@ def synthetic_recording(c10: float, resolution: int = 1, points="nodes", noise: 
 class RestartForecaster:
     """Forecast observations by re-solving every member at the frame's pressure with its current
     parameters, warm-started from its own previous equilibrium (the state-export variant of the
-    paper §3.3). Counts FE solves (member x assimilation step) and Newton iterations."""
+    paper §3.3). Counts FE solves (member x assimilation step) and Newton iterations.
 
-    def __init__(self, solver: ActuatorSolver, lam: np.ndarray, N: int, frames=None):
+    ``reduced``: a ``fem.reduced.HyperReducedModel`` of the same model (the forward ensemble's):
+    members are then re-solved on its basis (hyper-reduced Newton polished on the full residual,
+    ``fem.reduced.solve_reduced``), warm-started from their reduced states; a member whose reduced
+    solve fails is solved in full from the unloaded state and continues from its projection."""
+
+    def __init__(self, solver: ActuatorSolver, lam: np.ndarray, N: int, frames=None, reduced=None):
         self.solver, self.lam = solver, lam
         self.frames = np.arange(len(lam)) if frames is None else np.asarray(frames)
+        self.reduced = reduced
         pack = fem.newton._Packing(solver.model)
-        self.x = torch.zeros(N, pack.size, dtype=torch.float64)
+        size = pack.size if reduced is None else reduced.basis.size
+        self.x = torch.zeros(N, size, dtype=torch.float64)
         self.lam_now = np.zeros(N)
         self.fe_solves = 0
         self.newton_iterations = 0
+        self.full_fallbacks = 0
 
     def state(self) -> dict:
         return {"x": self.x, "lam_now": torch.as_tensor(self.lam_now), "fe_solves": self.fe_solves,
-                "newton_iterations": self.newton_iterations}
+                "newton_iterations": self.newton_iterations, "reduced": self.reduced is not None}
 
-    def load_state(self, s: dict) -> None:
+    def load_state(self, s: dict) -> bool:
+        """Take a checkpointed state; False (nothing taken) if it was made by the other kind of solve."""
+        if bool(s.get("reduced", False)) != (self.reduced is not None) or tuple(s["x"].shape) != tuple(self.x.shape):
+            return False
         self.x, self.lam_now = s["x"], s["lam_now"].numpy()
         self.fe_solves, self.newton_iterations = s["fe_solves"], s["newton_iterations"]
+        return True
 
     def __call__(self, Q: torch.Tensor, k: int) -> torch.Tensor:
         s = self.solver
         target = np.full(len(Q), self.lam[k])
-        sol = fem.solve(s.model, s.params(torch.exp(Q[:, 0])), [1.0],
+        params = s.params(torch.exp(Q[:, 0]))
+        if self.reduced is not None:
+            return self._reduced(params, k, target)
+        sol = fem.solve(s.model, params, [1.0],
                         s.options(initial_increment=1.0), start=fem.WarmStart(self.x, self.lam_now, target))
         self.fe_solves += len(Q)
         self.newton_iterations += int(sol.iterations.sum())
@@ -226,6 +243,32 @@ class RestartForecaster:
         self.x, self.lam_now = sol.x_last, target
         Y = s.operator(sol.u[:, -1, : s.mesh.n_nodes])
         return Y.reshape(len(Q), -1)
+
+    def _reduced(self, params, k, target) -> torch.Tensor:
+        from .fem.reduced import solve_reduced
+
+        s, N = self.solver, len(target)
+        if np.ptp(self.lam_now) > 0:
+            raise RuntimeError("restart filter: members are at different loads; restart the filter")
+        rs = solve_reduced(self.reduced, params, [float(target[0])], start=(self.x, float(self.lam_now[0])),
+                           check=False)
+        u = rs.u[:, -1]
+        q = rs.a[:, -1] @ self.reduced.basis.V
+        self.newton_iterations += int(rs.iterations.sum() + rs.polish.sum())
+        failed = np.flatnonzero(rs.status != "converged")
+        if failed.size:  # Newton on the full model from the unloaded state, then on the basis again
+            sol = fem.solve(s.model, {n: v[failed] for n, v in params.items()}, [float(target[0])], s.options())
+            bad = failed[sol.status != "converged"]
+            if bad.size:
+                raise RuntimeError(f"restart filter: members {bad.tolist()} did not converge at frame "
+                                   f"{self.frames[k]}; the run can be resumed after a fix")
+            u[failed] = sol.u[:, -1]
+            q[failed] = sol.a[:, -1] @ self.reduced.basis.V
+            self.newton_iterations += int(sol.iterations.sum())
+            self.full_fallbacks += failed.size
+        self.fe_solves += N
+        self.x, self.lam_now = q, target
+        return s.operator(u[:, : s.mesh.n_nodes]).reshape(N, -1)
 
 
 def recording_digest(rec: Recording) -> str:
@@ -307,14 +350,25 @@ RESTART_KEYS = ("members", "resolution", "seed", "recording", "truth_c10", "nois
                 "filter_seed", "restart_every", "pressure", "load_steps")  # what shapes the restart filter
 
 
-def _restart(config, run_dir, rec, lam, Q0, Z, r, tracked, progress):
+def _forward_reduction(solver: ActuatorSolver, fwd_dir):
+    """The forward ensemble's reduced model (``reduced_model.npz``) for the restart filter, or None."""
+    from .fem.reduced import HyperReducedModel
+
+    path = None if fwd_dir is None else Path(fwd_dir) / "reduced_model.npz"
+    if path is None or not path.exists():
+        return None
+    with np.load(path, allow_pickle=False) as f:
+        return HyperReducedModel.from_arrays(solver.model, {k: f[k] for k in f.files})
+
+
+def _restart(config, run_dir, rec, lam, Q0, Z, r, tracked, progress, fwd_dir=None):
     """Restart filter on every ``restart_every``-th frame, checkpointed after each step."""
     from .assimilation import FilterResult, sequential_filter
 
     idx = np.arange(config.restart_every - 1, rec.n_frames, config.restart_every)
     ckpt = run_dir / "restart_checkpoint.pt"
     solver = ActuatorSolver(config.resolution, rec, forward_config(config))
-    fc = RestartForecaster(solver, lam[idx], Q0.shape[0], rec.frames[idx])
+    fc = RestartForecaster(solver, lam[idx], Q0.shape[0], rec.frames[idx], reduced=_forward_reduction(solver, fwd_dir))
     gen = torch.Generator().manual_seed(config.filter_seed + 100)
     result = None
     if ckpt.exists():
@@ -322,9 +376,9 @@ def _restart(config, run_dir, rec, lam, Q0, Z, r, tracked, progress):
         now = config_dict(config)
         if (all(saved["config"].get(k) == now[k] for k in RESTART_KEYS) and saved.get("recording") == recording_digest(rec)
                 and torch.equal(saved["result"]["Q"][0], Q0)):
-            result = FilterResult.from_dict(saved["result"])
-            gen.set_state(saved["generator"])
-            fc.load_state(saved["forecaster"])
+            if fc.load_state(saved["forecaster"]):
+                result = FilterResult.from_dict(saved["result"])
+                gen.set_state(saved["generator"])
 
     def checkpoint(res: FilterResult, g: torch.Generator) -> None:
         res.fe_solves, res.newton_iterations = fc.fe_solves, fc.newton_iterations
@@ -390,7 +444,8 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, r
         # The restart filter solves FE from the unloaded state itself, so its prior is every draw,
         # including forward members that did not converge (the forward's path, not the draw, failed).
         Q0_all = torch.log(fwd["params"]["C10"])[:, None]
-        res, idx = _restart(config, run_dir, rec, lam, Q0_all, Z, r, tracked, progress)
+        res, idx = _restart(config, run_dir, rec, lam, Q0_all, Z, r, tracked, progress,
+                            fwd_dir=forward_dir(config, run_dir.parent if runs_dir is None else runs_dir))
         out["filters"]["restart"] = {"result": res, "frames": idx}
         out["exact_restart_frames"] = grid_posterior(sweep, rec.Z.reshape(K, -1), config.noise ** 2, mu, sigma,
                                                      config.grid, frames=idx)

@@ -60,6 +60,10 @@ class ForwardConfig:
     chunk: int = 1  # members per batched solve and checkpoint (batching gains nothing: 0.92x measured)
     threads: int = 1
     newton: dict = field(default_factory=lambda: {"stagnation_tol": 1e-6})
+    method: str = "reduced"  # "reduced": a few members in full, the rest on their basis (fem.reduced); "full"
+    snapshots: int = 0  # members solved in full for the basis (0: 1 + 2 x varying parameters, at least 3)
+    reduced_tol: float = 5e-4  # mm: a reduced member whose check estimates more is solved in full
+    reduced_batch: int = 4  # reduced members per batched solve
 
 
 def member_parameters(config: ForwardConfig) -> dict[str, torch.Tensor]:
@@ -157,6 +161,7 @@ def _claim(lock: Path, quiet: bool = False) -> bool:
 
 CHUNK_ARRAYS = ("Y", "u_last", "status", "load_reached", "iterations", "increments", "cutbacks", "last_residual",
                 "history_values", "history_lengths", "timings")
+OPTIONAL_ARRAYS = ("method", "error_estimate", "states", "full_tangents")  # reduced-method records
 
 
 def save_chunk(path: Path, history: list[list[float]], timings: dict, **arrays) -> None:
@@ -180,6 +185,9 @@ def load_chunk(path: Path) -> dict:
             if missing:
                 raise ValueError(f"arrays {missing} are missing")
             out = {k: data[k] for k in CHUNK_ARRAYS}
+            for k in OPTIONAL_ARRAYS:
+                if k in data.files:
+                    out[k] = data[k]
         timings = json.loads(str(out.pop("timings")))
         if not isinstance(timings, dict):
             raise ValueError("timings is not a JSON object")
@@ -198,18 +206,60 @@ def load_chunk(path: Path) -> dict:
     return out
 
 
-def _finished(chunks_dir: Path, starts: list[int], config: ForwardConfig) -> int:
+def _finished(chunks_dir: Path, spans: list[tuple[int, int]]) -> int:
     """Members whose chunk is on disk, whichever process solved it."""
-    return sum(min(s + config.chunk, config.members) - s for s in starts
-               if (chunks_dir / f"chunk_{s:05d}.npz").exists())
+    return sum(stop - start for start, stop in spans if (chunks_dir / f"chunk_{start:05d}.npz").exists())
+
+
+def _save_solution(path: Path, Y, u_last, sol, wall: float, **extra) -> None:
+    save_chunk(path, Y=Y, u_last=u_last, status=sol.status, load_reached=sol.load_reached,
+               iterations=sol.iterations, increments=sol.increments, cutbacks=sol.cutbacks,
+               last_residual=sol.last_residual, history=sol.residual_history,
+               timings={**sol.timings, "wall": wall}, **extra)
+
+
+def _reduced_model(run_dir: Path, model, snap_records: list[dict], params, snap, load, quiet: bool):
+    """The hyper-reduced model of the run: read from ``reduced_model.npz`` if a worker built it,
+    else built from the snapshot members' states and saved (arrays only, never unpickled)."""
+    from .fem.reduced import HyperReducedModel, build_reduced
+
+    path = run_dir / "reduced_model.npz"
+    if path.exists():
+        try:
+            with np.load(path, allow_pickle=False) as f:
+                hyper = HyperReducedModel.from_arrays(model, {k: f[k] for k in f.files})
+        except Exception as exc:
+            raise ValueError(f"{path} is not a reduced model this version can read ({exc}); delete it and rerun "
+                             "to build it again from the solved snapshot members") from None
+        if not quiet:
+            print(f"forward ensemble: reusing the reduced model in {path} ({hyper.basis.size} modes)", flush=True)
+        return hyper
+    states = np.stack([r["states"][0] for r in snap_records])
+    converged = np.array([r["status"][0] == "converged" for r in snap_records])
+    if not converged.any():
+        return None
+    idx = torch.as_tensor(np.asarray(snap)[converged])
+    hyper = build_reduced(model, states[converged], {k: v[idx] for k, v in params.items()}, load)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, **hyper.arrays())
+    tmp.replace(path)
+    return hyper
 
 
 def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = True) -> dict:
     """Solve every member at ``load_steps`` load factors and observe them at the frame times.
 
+    ``method="reduced"`` (default): the members ``fem.reduced.select_snapshots`` picks are solved in
+    full, the others on the hyper-reduced basis of those solutions, each checked by one full Newton
+    step and solved in full when the check estimates an error above ``reduced_tol`` mm
+    (``fem.reduced``); ``method="full"``: every member by full Newton.
     Returns a dict with the model, observation operator, parameters, per-member solver records and
-    ``Y_fe`` (N, frames, P, 2); chunks already on disk are loaded, not solved again.
+    ``Y_fe`` (N, frames, P, 2); members already on disk are loaded, not solved again.
     """
+    from .fem.reduced import select_snapshots, solve_reduced
+
+    if config.method not in ("reduced", "full"):
+        raise ValueError(f"forward method must be 'reduced' or 'full', got {config.method!r}")
     run_dir = Path(run_dir)
     _check_resume(run_dir, config)
     torch.set_num_threads(config.threads)
@@ -221,48 +271,112 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
     load = np.arange(1, config.load_steps + 1) / config.load_steps
     chunks_dir = run_dir / "members"
     chunks_dir.mkdir(exist_ok=True)
-    starts = list(range(0, config.members, config.chunk))
+    M = config.members
+    if config.method == "full":
+        spans = [(s, min(s + config.chunk, M)) for s in range(0, M, config.chunk)]
+        first = spans
+    else:  # one file per member: snapshots first, then the reduced members
+        spans = [(m, m + 1) for m in range(M)]
+        snap = sorted(select_snapshots(params, config.snapshots or None).tolist())
+        first = [(m, m + 1) for m in snap]
+    path_of = {start: chunks_dir / f"chunk_{start:05d}.npz" for start, _ in spans}
     bar = None
-    reused = _finished(chunks_dir, starts, config)
+    reused = _finished(chunks_dir, spans)
     if progress:
         from tqdm.auto import tqdm
 
         if reused:
-            print(f"forward ensemble: reusing {reused} of {config.members} members already solved in {chunks_dir}",
-                  flush=True)
+            print(f"forward ensemble: reusing {reused} of {M} members already solved in {chunks_dir}", flush=True)
+        what = "FE solves" if config.method == "full" else f"{len(first)} in full, then reduced"
         # initial=reused: the rate, hence the time left, comes from members solved in this run only
         # (by this process or any other worker on the same folder), never from loading cached ones
-        bar = tqdm(total=config.members, initial=reused, unit="member", smoothing=0,
-                   desc=f"forward ensemble, {model.n_red} dofs, FE solves")
-    for start in starts:
-        stop = min(start + config.chunk, config.members)
-        path = chunks_dir / f"chunk_{start:05d}.npz"
-        if path.exists() or not _claim(path.with_suffix(".lock"), quiet=not progress):
-            continue  # done, or another worker on the same run folder is solving it
+        bar = tqdm(total=M, initial=reused, unit="member", smoothing=0,
+                   desc=f"forward ensemble, {model.n_red} dofs, {what}")
+
+    def tick():
+        if bar is not None:
+            bar.update(_finished(chunks_dir, spans) - bar.n)
+
+    def solve_full(start, stop, **extra):
         chunk_params = {k: v[start:stop] for k, v in params.items()}
         t_chunk = time.perf_counter()
         sol = fem.solve(model, chunk_params, load, fem.NewtonOptions(**config.newton))
         u = sol.u[:, :, : mesh.n_nodes]
-        save_chunk(path, Y=operator(u).numpy(), u_last=sol.u[:, -1].numpy(), status=sol.status,
-                   load_reached=sol.load_reached, iterations=sol.iterations, increments=sol.increments,
-                   cutbacks=sol.cutbacks, last_residual=sol.last_residual, history=sol.residual_history,
-                   timings={**sol.timings, "wall": time.perf_counter() - t_chunk})
+        states = {"states": sol.a.numpy()} if config.method == "reduced" else {}
+        _save_solution(path_of[start], operator(u).numpy(), sol.u[:, -1].numpy(), sol,
+                       time.perf_counter() - t_chunk, method=np.array(["full"] * (stop - start)), **states, **extra)
+
+    def wait_for(span_list):
+        """Records of these spans; chunks other workers hold are waited for (a dead worker's lock
+        is taken over and the member solved here). None if this process took one over."""
+        records = []
+        for start, _ in span_list:
+            path = path_of[start]
+            while not path.exists():
+                if _claim(path.with_suffix(".lock"), quiet=not progress):
+                    path.with_suffix(".lock").unlink()
+                    return None
+                tick()  # members other workers finish count as progress too
+                time.sleep(2.0)
+            records.append(load_chunk(path))
+        return records
+
+    for start, stop in first:
+        path = path_of[start]
+        if path.exists() or not _claim(path.with_suffix(".lock"), quiet=not progress):
+            continue  # done, or another worker on the same run folder is solving it
+        solve_full(start, stop)
         path.with_suffix(".lock").unlink()
+        tick()
+    if config.method == "reduced":
+        snap_records = wait_for(first)
+        if snap_records is None:
+            if bar is not None:
+                bar.close()
+            return run_forward(config, run_dir, progress)
+        rest = [m for m in range(M) if m not in set(snap)]
+        hyper = None
+        if any(not path_of[m].exists() for m in rest):
+            hyper = _reduced_model(run_dir, model, snap_records, params, snap, load, quiet=not progress)
+        i = 0
+        while i < len(rest):
+            batch = []
+            while i < len(rest) and len(batch) < config.reduced_batch:
+                m = rest[i]
+                i += 1
+                if not path_of[m].exists() and _claim(path_of[m].with_suffix(".lock"), quiet=not progress):
+                    batch.append(m)
+            if not batch:
+                continue
+            redo = batch if hyper is None else []
+            if hyper is not None:
+                t_batch = time.perf_counter()
+                idx = torch.as_tensor(batch)
+                rs = solve_reduced(hyper, {k: v[idx] for k, v in params.items()}, load)
+                wall = (time.perf_counter() - t_batch) / len(batch)
+                for j, m in enumerate(batch):
+                    if rs.status[j] != "converged" or not rs.error_estimate[j] <= config.reduced_tol:
+                        redo.append(m)
+                        continue
+                    u = rs.u[j : j + 1, :, : mesh.n_nodes]
+                    rec = fem.Solution(load, rs.u[j:j + 1], rs.a[j:j + 1], np.array(["converged"]), np.ones(1),
+                                       rs.iterations[j:j + 1] + rs.polish[j:j + 1], np.full(1, load.size),
+                                       np.zeros(1, dtype=int), np.full(1, np.nan), [[]],
+                                       {k: v / len(batch) for k, v in rs.timings.items()}, None, None)
+                    _save_solution(path_of[m], operator(u).numpy(), rs.u[j:j + 1, -1].numpy(), rec, wall,
+                                   method=np.array(["reduced"]), error_estimate=rs.error_estimate[j:j + 1],
+                                   full_tangents=rs.full_tangents[j:j + 1])
+            for m in redo:  # the reduced answer failed its check: Newton on the full model
+                solve_full(m, m + 1, error_estimate=np.asarray(
+                    [np.nan if hyper is None else rs.error_estimate[batch.index(m)]]))
+            for m in batch:
+                path_of[m].with_suffix(".lock").unlink()
+            tick()
+    records = wait_for(spans)
+    if records is None:
         if bar is not None:
-            bar.update(_finished(chunks_dir, starts, config) - bar.n)
-    records = []
-    for start in starts:  # chunks other workers hold: wait for them (a dead worker's lock is taken over)
-        path = chunks_dir / f"chunk_{start:05d}.npz"
-        while not path.exists():
-            if _claim(path.with_suffix(".lock"), quiet=not progress):
-                path.with_suffix(".lock").unlink()
-                if bar is not None:
-                    bar.close()
-                return run_forward(config, run_dir, progress)
-            if bar is not None:  # members other workers finish count as progress too
-                bar.update(_finished(chunks_dir, starts, config) - bar.n)
-            time.sleep(2.0)
-        records.append(load_chunk(path))
+            bar.close()
+        return run_forward(config, run_dir, progress)
     if bar is not None:
         bar.update(config.members - bar.n)
         bar.close()
@@ -273,6 +387,10 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
     Y_fe = interpolate_in_time(np.concatenate([[0.0], load]), np.concatenate([Y0, Y_steps], axis=1), times, axis=1)
     cat = {k: np.concatenate([r[k] for r in records]) for k in
            ("status", "load_reached", "iterations", "increments", "cutbacks", "last_residual", "u_last")}
+    n_of = [r["status"].size for r in records]
+    cat["method"] = np.concatenate([r.get("method", np.array(["full"] * n)) for r, n in zip(records, n_of)])
+    cat["error_estimate"] = np.concatenate([r.get("error_estimate", np.full(n, np.nan))
+                                            for r, n in zip(records, n_of)])
     timings: dict[str, float] = {}
     for r in records:
         for k, v in r["timings"].items():

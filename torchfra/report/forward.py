@@ -61,6 +61,11 @@ def write_forward_outputs(result: dict, config, run_dir: str | Path) -> dict:
         "newton_iterations_max": int(result["iterations"].max()),
         "cutbacks_total": int(result["cutbacks"].sum()),
         "wall_s": float(result["wall_s"]),
+        "method": config.method,
+        "members_reduced": int((result["method"] == "reduced").sum()),
+        "members_full": [int(m) for m in np.flatnonzero(result["method"] == "full")],
+        "reduced_error_estimate_max_mm": (float(np.nanmax(result["error_estimate"][result["method"] == "reduced"]))
+                                          if (result["method"] == "reduced").any() else None),
         "solver_timings_s": result["timings"],
         "threads": int(torch.get_num_threads()),
         "tracked_point": {"id": int(op.point_ids[tracked]), "X": op.points[tracked].tolist()},
