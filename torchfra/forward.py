@@ -280,22 +280,32 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
         snap = sorted(select_snapshots(params, config.snapshots or None).tolist())
         first = [(m, m + 1) for m in snap]
     path_of = {start: chunks_dir / f"chunk_{start:05d}.npz" for start, _ in spans}
-    bar = None
+    bar, phase = None, first
     reused = _finished(chunks_dir, spans)
-    if progress:
-        from tqdm.auto import tqdm
+    if progress and reused:
+        print(f"forward ensemble: reusing {reused} of {M} members already solved in {chunks_dir}", flush=True)
 
-        if reused:
-            print(f"forward ensemble: reusing {reused} of {M} members already solved in {chunks_dir}", flush=True)
-        what = "FE solves" if config.method == "full" else f"{len(first)} in full, then reduced"
-        # initial=reused: the rate, hence the time left, comes from members solved in this run only
-        # (by this process or any other worker on the same folder), never from loading cached ones
-        bar = tqdm(total=M, initial=reused, unit="member", smoothing=0,
-                   desc=f"forward ensemble, {model.n_red} dofs, {what}")
+    def open_bar(span_list, what):
+        """One bar per phase (full Newton members, reduced members: their rates differ ~5x, so one
+        bar's time left would mislead). initial = members already on disk: the rate, hence the time
+        left, comes from members solved in this run only (by this process or any other worker on the
+        same folder), never from loading cached ones."""
+        nonlocal bar, phase
+        if bar is not None:
+            bar.close()
+        phase = span_list
+        if progress:
+            from tqdm.auto import tqdm
+
+            total = sum(stop - start for start, stop in span_list)
+            bar = tqdm(total=total, initial=_finished(chunks_dir, span_list), unit="member", smoothing=0,
+                       desc=f"forward ensemble, {model.n_red} dofs, {what}")
 
     def tick():
         if bar is not None:
-            bar.update(_finished(chunks_dir, spans) - bar.n)
+            bar.update(_finished(chunks_dir, phase) - bar.n)
+
+    open_bar(first, "FE solves" if config.method == "full" else "snapshot members, full Newton")
 
     def solve_full(start, stop, **extra):
         chunk_params = {k: v[start:stop] for k, v in params.items()}
@@ -337,7 +347,10 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
         rest = [m for m in range(M) if m not in set(snap)]
         hyper = None
         if any(not path_of[m].exists() for m in rest):
+            if progress:
+                print("forward ensemble: building the reduced basis and its hyper-reduction", flush=True)
             hyper = _reduced_model(run_dir, model, snap_records, params, snap, load, quiet=not progress)
+        open_bar([(m, m + 1) for m in rest], "reduced members")
         i = 0
         while i < len(rest):
             batch = []
@@ -378,7 +391,7 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
             bar.close()
         return run_forward(config, run_dir, progress)
     if bar is not None:
-        bar.update(config.members - bar.n)
+        bar.update(bar.total - bar.n)
         bar.close()
     Y_steps = np.concatenate([r["Y"] for r in records])  # (N, S, P, 2) at the load steps
     times = frame_times(config.frames)
