@@ -235,11 +235,12 @@ def _reduced_model(run_dir: Path, model, snap_records: list[dict], params, snap,
             print(f"forward ensemble: reusing the reduced model in {path} ({hyper.basis.size} modes)", flush=True)
         return hyper
     states = np.stack([r["states"][0] for r in snap_records])
-    converged = np.array([r["status"][0] == "converged" for r in snap_records])
-    if not converged.any():
+    # a snapshot that stopped short of full load still brings the load steps it reached
+    reached = np.isfinite(states).all(axis=2).any(axis=1)
+    if not reached.any():
         return None
-    idx = torch.as_tensor(np.asarray(snap)[converged])
-    hyper = build_reduced(model, states[converged], {k: v[idx] for k, v in params.items()}, load)
+    idx = torch.as_tensor(np.asarray(snap)[reached])
+    hyper = build_reduced(model, states[reached], {k: v[idx] for k, v in params.items()}, load)
     tmp = path.with_suffix(".tmp.npz")
     np.savez(tmp, **hyper.arrays())
     tmp.replace(path)
