@@ -219,8 +219,10 @@ class HyperReducedModel:
         return R, K, ok
 
 
-def _predict(history, lam, kind, hyper, params, K, alive):
-    """Starting iterate at load factor ``lam`` from the converged (load factor, q) history."""
+def _predict(history, lam, kind):
+    """Starting iterate at load factor ``lam`` from the converged (load factor, q) history:
+    ``"quadratic"`` (through the last three) or ``"secant"``. An Euler predictor (reduced tangent
+    and load derivative) was measured too: no fewer iterations than these."""
     lam1, q1 = history[-1]
     if len(history) == 1:
         return q1.clone()
@@ -229,17 +231,6 @@ def _predict(history, lam, kind, hyper, params, K, alive):
         lm, qm = history[-3]
         l = [(lam - b) * (lam - c) / ((a - b) * (a - c)) for a, b, c in ((lm, lam0, lam1), (lam0, lm, lam1), (lam1, lm, lam0))]
         return l[0] * qm + l[1] * q0 + l[2] * q1
-    if kind == "euler":
-        idx = np.flatnonzero(alive)
-        dtype = q1.dtype
-        h = 1e-3
-        sub = {name: v[idx] for name, v in params.items()}
-        R1 = hyper.evaluate(q1[idx], sub, torch.full((idx.size,), lam1 + h, dtype=dtype), tangent=False)[0]
-        R0 = hyper.evaluate(q1[idx], sub, torch.full((idx.size,), lam1, dtype=dtype), tangent=False)[0]
-        v = -torch.linalg.solve(K[idx], ((R1 - R0) / h).unsqueeze(-1)).squeeze(-1)
-        q = q1.clone()
-        q[idx] = q1[idx] + (lam - lam1) * v
-        return q
     return q1 + (lam - lam1) * (q1 - q0) / (lam1 - lam0)
 
 
@@ -288,7 +279,7 @@ def solve_reduced(hyper: HyperReducedModel, params: dict, load_factors, xtol: fl
     tangents = np.zeros(N, dtype=np.int64)
     full_tangents = np.zeros(N, dtype=np.int64)
     for t, lam in enumerate(outs):
-        q = _predict(history, lam, predictor, hyper, params, K_last, alive)
+        q = _predict(history, lam, predictor)
         for phase in ("sampled", "polish"):
             active = alive.copy()
             need_tangent = np.full(N, phase == "sampled")
