@@ -176,6 +176,12 @@ def save_chunk(path: Path, history: list[list[float]], timings: dict, **arrays) 
     tmp.replace(path)
 
 
+def _why_unreadable(exc: Exception) -> str:
+    """Why an array file could not be read, without numpy's advice to load pickled data unsafely."""
+    text = str(exc)
+    return "it is not an array archive written by np.savez" if "pickle" in text else text
+
+
 def load_chunk(path: Path) -> dict:
     """Read a chunk written by :func:`save_chunk`; never unpickles. A file that is not such a chunk
     (an older format, a damaged or planted file) is refused by name."""
@@ -193,7 +199,7 @@ def load_chunk(path: Path) -> dict:
             raise ValueError("timings is not a JSON object")
     except Exception as exc:  # zip, pickle, key and JSON errors alike: one clear message
         raise ValueError(
-            f"{path} is not a forward-ensemble chunk this version can read ({exc}); it may be from an "
+            f"{path} is not a forward-ensemble chunk this version can read ({_why_unreadable(exc)}); it may be from an "
             "older version, damaged, or planted: delete it and rerun to solve those members again"
         ) from None
     lengths = out.pop("history_lengths")
@@ -229,7 +235,7 @@ def _reduced_model(run_dir: Path, model, snap_records: list[dict], params, snap,
             with np.load(path, allow_pickle=False) as f:
                 hyper = HyperReducedModel.from_arrays(model, {k: f[k] for k in f.files})
         except Exception as exc:
-            raise ValueError(f"{path} is not a reduced model this version can read ({exc}); delete it and rerun "
+            raise ValueError(f"{path} is not a reduced model this version can read ({_why_unreadable(exc)}); delete it and rerun "
                              "to build it again from the solved snapshot members") from None
         if not quiet:
             print(f"forward ensemble: reusing the reduced model in {path} ({hyper.basis.size} modes)", flush=True)
