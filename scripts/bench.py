@@ -42,7 +42,7 @@ import numpy as np
 import scipy
 import torch
 
-from torchfra import fem
+from torchfra import allocator, fem
 from torchfra.fem.assembly import SparsePattern, scatter_vector
 from torchfra.fem.linsolve import Factorization, available_backends, resolve_backend
 from torchfra.geometry.structured import box_mesh
@@ -565,6 +565,7 @@ def environment(mkl_threads: int | None) -> dict:
         "python": platform.python_version(), "torch_threads": torch.get_num_threads(),
         "torch_interop_threads": torch.get_num_interop_threads(), "mkl_threads": mkl_threads,
         "linear_solver_backends": available_backends(),
+        "allocator_keeps_freed_memory": allocator.state["tuned"], "allocator": allocator.state["reason"],
         "platform": platform.platform(), "machine": platform.machine(), "cpu_model": cpu_model(),
         "cpu_count": os.cpu_count(), "load_average_start": list(os.getloadavg()),
         "memory_available_mb_start": available_memory_mb(),

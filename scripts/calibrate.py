@@ -68,7 +68,8 @@ def main(argv=None) -> dict:
     p.add_argument("--coverage-seeds", type=int, default=None, help="noise re-draws for the coverage study")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (recorded)")
     p.add_argument("--workers", type=int, default=2,
-                   help="processes solving forward-ensemble chunks side by side (one per core)")
+                   help="processes solving forward-ensemble chunks side by side (one per core); the restart "
+                        "filter, which runs after them, uses as many threads")
     add_arguments(p)
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
@@ -88,7 +89,7 @@ def main(argv=None) -> dict:
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # run the cleanup below when killed politely
     helpers = start_forward_helpers(config, run_dir, a.workers - 1)
     try:
-        out = run_calibration(config, run_dir)
+        out = run_calibration(config, run_dir, restart_threads=max(a.threads, a.workers))
     finally:
         for h in helpers:
             stopped = False
