@@ -100,6 +100,12 @@ def main(argv=None) -> dict:
                 print(f"forward helper process {h.pid} failed (exit status {h.returncode}); the members it "
                       "had not saved are solved by a rerun", file=sys.stderr)
     summary = write_calibration_outputs(out, run_dir, time.perf_counter() - t0)
+    fit = summary.get("data_fit", {"ok": True})
+    if not fit["ok"]:  # flagged, never reported as a result
+        print("the data do not fit the model/prior; no calibration result:\n- " + "\n- ".join(fit["reasons"])
+              + f"\n(the filters' outputs are in {run_dir} for inspection only)", file=sys.stderr)
+        print(json.dumps({"result": None, "data_fit": fit, "run": str(run_dir)}, indent=1))
+        return summary
     print(json.dumps({"filters": {k: v["C10"] for k, v in summary["filters"].items()},
                       "truth": summary["truth"], "run": str(run_dir)}, indent=1))
     return summary

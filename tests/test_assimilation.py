@@ -226,3 +226,35 @@ def test_slave_degree_chosen_by_leave_one_out_error():
     assert torch.allclose(torch.stack(errs), closed[:5], atol=1e-12)
     curved = 10 * torch.exp(-Q0)[:, :, None].expand(-1, 3, 4)
     assert PolynomialSlave(Q0, curved, "auto").degree > 3
+
+
+def test_data_that_do_not_fit_the_model_or_prior_are_flagged():
+    """The exact posterior's data-fit check on the actuator's map shape (y ~ A / C10 per observation,
+    sweep over the prior's +- 3 std in log C10, noise 0.5): a recording made inside the range with
+    the model's own noise passes; one made at a C10 three times stiffer than the range (or in metres:
+    1000x smaller) piles the posterior on the range's end; one with shifts of +- 3 noise stds
+    alternating across the points (no C10 makes them) leaves a residual far above the noise. Each is flagged with its reason, the good one
+    with none (reference: the generating truth of each recording)."""
+    from torchfra.assimilation import data_fit
+
+    rng = np.random.default_rng(3)
+    K, m, noise = 12, 40, 0.5
+    A = rng.uniform(0.5, 2.0, (1, m)) * np.linspace(0.1, 1.0, K)[:, None] * 0.06  # mm at C10 = 0.006
+    mu, sd = math.log(0.0062), 0.18
+    q_sweep = np.linspace(mu - 3 * sd, mu + 3 * sd, 60)
+    sweep = SweepMap(q_sweep, A[None] / np.exp(q_sweep)[:, None, None])
+
+    def check(c10, shift=0.0, scale=1.0):
+        Z = scale * (A / c10 + shift + noise * rng.standard_normal((K, m)))
+        post = grid_posterior(sweep, Z, noise**2, mu, sd, n_grid=4000)
+        return data_fit(post, sweep, Z, noise**2)
+
+    good = check(0.0058)
+    assert good["ok"] and good["reasons"] == [] and good["residual_rms_in_noise_units"] < 1.2, good
+    stiff = check(0.02)
+    assert not stiff["ok"] and stiff["edge_mass"] > 0.5 and "upper end" in stiff["reasons"][0], stiff
+    metres = check(0.006, scale=1e-3)
+    assert not metres["ok"] and "units" in metres["reasons"][0], metres
+    shifted = check(0.006, shift=3 * noise * (-1.0) ** np.arange(m))
+    assert not shifted["ok"] and shifted["residual_rms_in_noise_units"] > 2.5, shifted
+    assert any("no parameter of the model" in r for r in shifted["reasons"]), shifted

@@ -417,7 +417,7 @@ def test_diagnose_and_calibrate_take_a_dic_export_directly(tmp_path, monkeypatch
 
     calibrate_script = load_script("calibrate")
 
-    def fake_calibration(config, run_dir):
+    def fake_calibration(config, run_dir, **kw):
         seen["calibrate"] = read_recording(config.recording)
         raise SystemExit(0)
 

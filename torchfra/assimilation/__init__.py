@@ -1,7 +1,7 @@
 """Calibration from recordings: the ensemble Kalman analysis, the hierarchical master/slave filter
 (paper Eqs. 21-23) with linear or polynomial slave, the restart filter and the exact grid posterior."""
 from .analysis import AnalysisInfo, analysis
-from .exact import GridPosterior, SweepMap, grid_posterior
+from .exact import GridPosterior, SweepMap, data_fit, grid_posterior
 from .filters import FilterResult, LinearSlave, PolynomialSlave, hierarchical_filter, sequential_filter, summarize
 
 __all__ = ["AnalysisInfo", "analysis", "GridPosterior", "SweepMap", "grid_posterior", "FilterResult", "LinearSlave",

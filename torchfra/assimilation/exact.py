@@ -154,3 +154,36 @@ def _frame(sweep: SweepMap, q: np.ndarray, k: int) -> np.ndarray:
     t = (q - s.x[i])[:, None]
     c = s.c[:, :, k * m:(k + 1) * m]  # (4, S - 1, m) cubic coefficients of frame k
     return ((c[0, i] * t + c[1, i]) * t + c[2, i]) * t + c[3, i]
+
+
+EDGE_MASS_LIMIT = 0.01  # posterior probability in the 10 end cells of the grid that flags the prior's edge
+RESIDUAL_RMS_LIMIT = 2.0  # residual RMS at the MAP, in noise units, that flags a model that does not fit
+
+
+def data_fit(posterior: GridPosterior, sweep: SweepMap, Z, r) -> dict:
+    """Whether the recording fits the model and the prior at all, from the exact posterior: a posterior
+    piled against an end of the sweep's range (``edge_mass`` above ``EDGE_MASS_LIMIT``: the data want
+    a parameter outside the forward ensemble, e.g. a stiffer silicone or a unit mistake), or a residual
+    at the MAP far above the noise (RMS of (Z - Y) / sqrt(r) above ``RESIDUAL_RMS_LIMIT``: no parameter
+    of the model reproduces the recording: wrong noise level, units, or missing physics). Returns
+    {"ok", "edge_mass", "residual_rms_in_noise_units", "map", "range", "reasons"} (q = log parameter);
+    a run whose data do not fit must say so, never report its posterior as a result."""
+    Z = np.asarray(Z, dtype=np.float64)
+    r = np.broadcast_to(np.asarray(r, dtype=np.float64), Z.shape)
+    q_map = float(posterior.q[int(np.argmax(posterior.log_post[-1]))])
+    e = (Z - sweep(np.array([q_map]))[0]) / np.sqrt(r)
+    rms = float(np.sqrt(np.nanmean(e**2)))
+    edge = posterior.edge_mass()
+    lo, hi = sweep.range
+    reasons = []
+    if edge > EDGE_MASS_LIMIT:
+        side = "upper" if q_map > 0.5 * (lo + hi) else "lower"
+        reasons.append(f"{edge:.0%} of the exact posterior lies at the {side} end of the forward ensemble's range "
+                       f"[{math.exp(lo):.4g}, {math.exp(hi):.4g}]: the recording wants a parameter outside the "
+                       "prior (check the units of displacements and pressures, or widen the prior)")
+    if rms > RESIDUAL_RMS_LIMIT:
+        reasons.append(f"at the best parameter ({math.exp(q_map):.4g}) the residual is {rms:.3g} times the noise: "
+                       "no parameter of the model reproduces the recording (check the noise level and units, or "
+                       "look for missing physics with scripts/diagnose.py)")
+    return {"ok": not reasons, "edge_mass": edge, "residual_rms_in_noise_units": rms, "map": math.exp(q_map),
+            "range": [math.exp(lo), math.exp(hi)], "reasons": reasons}

@@ -100,6 +100,8 @@ def write_calibration_outputs(out: dict, run_dir, wall_s: float) -> dict:
         "wall_s": wall_s,
         "threads": torch.get_num_threads(),
     }
+    if "data_fit" in out:
+        summary["data_fit"] = out["data_fit"]
     if "restart_threads" in out:
         summary["restart_threads"] = out["restart_threads"]
     summary["direct_fe_check"] = out["direct_fe_check"]
