@@ -254,7 +254,7 @@ def test_data_that_do_not_fit_the_model_or_prior_are_flagged():
     stiff = check(0.02)
     assert not stiff["ok"] and stiff["edge_mass"] > 0.5 and "upper end" in stiff["reasons"][0], stiff
     metres = check(0.006, scale=1e-3)
-    assert not metres["ok"] and "units" in metres["reasons"][0], metres
+    assert not metres["ok"] and "metres instead of mm?" in metres["reasons"][0], metres
     shifted = check(0.006, shift=3 * noise * (-1.0) ** np.arange(m))
     assert not shifted["ok"] and shifted["residual_rms_in_noise_units"] > 2.5, shifted
     assert any("no parameter of the model" in r for r in shifted["reasons"]), shifted

@@ -158,6 +158,8 @@ def _frame(sweep: SweepMap, q: np.ndarray, k: int) -> np.ndarray:
 
 EDGE_MASS_LIMIT = 0.01  # posterior probability in the 10 end cells of the grid that flags the prior's edge
 RESIDUAL_RMS_LIMIT = 2.0  # residual RMS at the MAP, in noise units, that flags a model that does not fit
+UNIT_HINTS = ((1e-3, "metres instead of mm?"), (1e-1, "cm instead of mm?"), (1e3, "micrometres instead of mm?"),
+              (25.4, "inches instead of mm?"))  # recorded / model displacement ratio -> the likely unit mistake
 
 
 def data_fit(posterior: GridPosterior, sweep: SweepMap, Z, r) -> dict:
@@ -166,7 +168,8 @@ def data_fit(posterior: GridPosterior, sweep: SweepMap, Z, r) -> dict:
     a parameter outside the forward ensemble, e.g. a stiffer silicone or a unit mistake), or a residual
     at the MAP far above the noise (RMS of (Z - Y) / sqrt(r) above ``RESIDUAL_RMS_LIMIT``: no parameter
     of the model reproduces the recording: wrong noise level, units, or missing physics). Returns
-    {"ok", "edge_mass", "residual_rms_in_noise_units", "map", "range", "reasons"} (q = log parameter);
+    {"ok", "edge_mass", "residual_rms_in_noise_units", "map", "range", "displacement_scale" (the best a in
+    Z ~ a Y at the MAP: far from 1 at the range's end names the likely unit mistake), "reasons"};
     a run whose data do not fit must say so, never report its posterior as a result."""
     Z = np.asarray(Z, dtype=np.float64)
     r = np.broadcast_to(np.asarray(r, dtype=np.float64), Z.shape)
@@ -175,15 +178,21 @@ def data_fit(posterior: GridPosterior, sweep: SweepMap, Z, r) -> dict:
     rms = float(np.sqrt(np.nanmean(e**2)))
     edge = posterior.edge_mass()
     lo, hi = sweep.range
+    Y = sweep(np.array([q_map]))[0]
+    seen = np.isfinite(Z)
+    scale = float(np.sum(Z[seen] * Y[seen]) / max(float(np.sum(Y[seen] ** 2)), 1e-300))  # best a in Z ~ a Y
     reasons = []
     if edge > EDGE_MASS_LIMIT:
         side = "upper" if q_map > 0.5 * (lo + hi) else "lower"
+        hint = next((h for ratio, h in UNIT_HINTS if abs(math.log10(max(abs(scale), 1e-300) / ratio)) < 0.35), None)
+        units = (f"the recorded displacements are {scale:.3g} times the model's at that end: {hint}" if hint else
+                 "check the units of displacements and pressures")
         reasons.append(f"{edge:.0%} of the exact posterior lies at the {side} end of the forward ensemble's range "
                        f"[{math.exp(lo):.4g}, {math.exp(hi):.4g}]: the recording wants a parameter outside the "
-                       "prior (check the units of displacements and pressures, or widen the prior)")
+                       f"prior ({units}; or widen the prior)")
     if rms > RESIDUAL_RMS_LIMIT:
         reasons.append(f"at the best parameter ({math.exp(q_map):.4g}) the residual is {rms:.3g} times the noise: "
                        "no parameter of the model reproduces the recording (check the noise level and units, or "
                        "look for missing physics with scripts/diagnose.py)")
     return {"ok": not reasons, "edge_mass": edge, "residual_rms_in_noise_units": rms, "map": math.exp(q_map),
-            "range": [math.exp(lo), math.exp(hi)], "reasons": reasons}
+            "range": [math.exp(lo), math.exp(hi)], "displacement_scale": scale, "reasons": reasons}
