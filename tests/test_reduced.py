@@ -129,3 +129,25 @@ def test_saved_reduction_rebuilds_the_same_reduced_model(solved, tmp_path):
     assert torch.equal(R1, R2) and torch.equal(K1, K2)
     with pytest.raises(ValueError, match="unknowns"):
         type(hyper).from_arrays(model, {**hyper.arrays(), "V": hyper.basis.V.numpy()[1:]})
+
+
+def test_a_snapshot_that_stopped_early_keeps_the_load_steps_it_reached(solved):
+    """A snapshot member that does not reach full load (a soft draw that balloons) still holds
+    equilibrium states up to where it stopped; the basis must span them (on the actuator, leaving
+    them out sent the neighbours of the softest draw to full Newton, with estimates of 0.03 mm).
+    Reference: the full Newton states themselves (projection error to the basis tolerance)."""
+    model, params, ref, es = solved
+    a, b = (int(m) for m in es.snapshots[:2])
+    states = ref.a[[a, b]].clone()
+    states[1, 2:] = float("nan")  # member b stopped after the second load step
+    sub = {k: v[[a, b]] for k, v in params.items()}
+    with_partial = build_reduced(model, states, sub, LOADS).basis.V
+    without = build_reduced(model, states[:1], {k: v[:1] for k, v in sub.items()}, LOADS).basis.V
+    reached = ref.a[b, :2]
+    norm = float(reached.norm())
+
+    def gap(V):
+        return float((reached - (reached @ V) @ V.T).norm()) / norm
+
+    assert gap(with_partial) < 1e-6, gap(with_partial)
+    assert gap(without) > 1e-4, gap(without)  # the test would see them missing
