@@ -5,6 +5,12 @@
 writes runs/<out>/: forward.npz (times, pressure, params, points, Y (N, T, P, 2), status),
 summary.json, TensorBoard events, tracked_node.png, mean_deformed.vtu. A killed run resumes from
 the member chunks already in runs/<out>/members/.
+
+    torchrun --standalone --nproc-per-node 2 scripts/forward_uq.py --members 100 --out forward
+
+runs the same ensemble on 2 processes (torch.distributed, gloo): members are shared out by rank and
+every rank ends with all of them in its run folder; rank 0 writes the outputs. Across machines:
+torchrun --nnodes N --node-rank I --nproc-per-node K --rdzv-endpoint HOST:PORT (see the README).
 """
 import argparse
 import json
@@ -13,6 +19,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from torchfra.distributed import finish, ranks  # noqa: E402
 from torchfra.forward import ForwardConfig, run_forward  # noqa: E402
 from torchfra.report.forward import write_forward_outputs  # noqa: E402
 
@@ -47,7 +54,13 @@ def main(argv=None) -> dict:
                            threads=a.threads, integration=a.integration, method=a.method, snapshots=a.snapshots,
                            reduced_tol=a.reduced_tol)
     run_dir = Path(a.runs_dir) / a.out
-    summary = write_forward_outputs(run_forward(config, run_dir, progress=not a.quiet), config, run_dir)
+    r = ranks()
+    out = run_forward(config, run_dir, progress=not a.quiet)
+    if r.rank != 0:  # torchrun: every rank holds the ensemble; rank 0 writes the outputs
+        finish(r)
+        return {}
+    summary = write_forward_outputs(out, config, run_dir)
+    finish(r)
     print(json.dumps({k: summary[k] for k in ("members", "members_converged", "elements", "fiber_elements",
                                               "dofs", "wall_s", "members_reduced", "tracked_displacement_mean")}))
     return summary

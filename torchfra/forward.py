@@ -92,7 +92,9 @@ def _check_resume(run_dir: Path, config: ForwardConfig) -> None:
             )
     else:
         run_dir.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(saved, indent=1))
+        tmp = path.with_name(f"config.{os.getpid()}.tmp")  # several workers may start at once
+        tmp.write_text(json.dumps(saved, indent=1))
+        tmp.replace(path)
 
 
 LOCK_EXPIRY_S = 3600.0  # a lock of another host older than this is taken as abandoned
@@ -267,7 +269,11 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
 
     if config.method not in ("reduced", "full"):
         raise ValueError(f"forward method must be 'reduced' or 'full', got {config.method!r}")
+    from .distributed import broadcast_ints, ranks, share_file, share_files
+
     run_dir = Path(run_dir)
+    r = ranks()  # torchrun: members are shared out by rank, not claimed through lock files
+    progress = progress and r.rank == 0
     _check_resume(run_dir, config)
     torch.set_num_threads(config.threads)
     t0 = time.perf_counter()
@@ -338,7 +344,22 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
             records.append(load_chunk(path))
         return records
 
-    for start, stop in first:
+    stop_of = dict(spans)
+
+    def todo(starts):
+        """torchrun: the spans still to solve, as rank 0's run folder lists them (every rank agrees)."""
+        return broadcast_ints([s for s in starts if not path_of[s].exists()] if r.rank == 0 else None, r)
+
+    def share(solved):
+        share_files([path_of[s] for s in solved], [r.owner(solved, s) for s in solved], r)
+
+    if r.parallel:
+        mine = todo([start for start, _ in first])
+        for start in r.share(mine):
+            solve_full(start, stop_of[start])
+            tick()
+        share(mine)
+    for start, stop in ([] if r.parallel else first):
         path = path_of[start]
         if path.exists() or not _claim(path.with_suffix(".lock"), quiet=not progress):
             continue  # done, or another worker on the same run folder is solving it
@@ -353,18 +374,26 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
             return run_forward(config, run_dir, progress)
         rest = [m for m in range(M) if m not in set(snap)]
         hyper = None
-        if any(not path_of[m].exists() for m in rest):
+        left = todo(rest) if r.parallel else [m for m in rest if not path_of[m].exists()]
+        if left:
             if progress:
                 print("forward ensemble: building the reduced basis and its hyper-reduction", flush=True)
-            hyper = _reduced_model(run_dir, model, snap_records, params, snap, load, quiet=not progress)
+            if r.rank == 0:  # torchrun: rank 0 builds it, the others read its file
+                hyper = _reduced_model(run_dir, model, snap_records, params, snap, load, quiet=not progress)
+            if r.parallel and broadcast_ints([int(hyper is not None)] if r.rank == 0 else None, r)[0]:
+                share_file(run_dir / "reduced_model.npz", r, 0)
+                if r.rank != 0:
+                    hyper = _reduced_model(run_dir, model, snap_records, params, snap, load, quiet=True)
         open_bar([(m, m + 1) for m in rest], "reduced members")
+        queue = r.share(left) if r.parallel else rest
         i = 0
-        while i < len(rest):
+        while i < len(queue):
             batch = []
-            while i < len(rest) and len(batch) < config.reduced_batch:
-                m = rest[i]
+            while i < len(queue) and len(batch) < config.reduced_batch:
+                m = queue[i]
                 i += 1
-                if not path_of[m].exists() and _claim(path_of[m].with_suffix(".lock"), quiet=not progress):
+                if r.parallel or (not path_of[m].exists()
+                                  and _claim(path_of[m].with_suffix(".lock"), quiet=not progress)):
                     batch.append(m)
             if not batch:
                 continue
@@ -390,8 +419,9 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
                 solve_full(m, m + 1, error_estimate=np.asarray(
                     [np.nan if hyper is None else rs.error_estimate[batch.index(m)]]))
             for m in batch:
-                path_of[m].with_suffix(".lock").unlink()
+                path_of[m].with_suffix(".lock").unlink(missing_ok=r.parallel)
             tick()
+        share(left if r.parallel else [])
     records = wait_for(spans)
     if records is None:
         if bar is not None:

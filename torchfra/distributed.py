@@ -1,0 +1,106 @@
+"""Member-parallel FE work on ``torch.distributed``: ranks started by ``torchrun`` split an ensemble.
+
+``torchrun --standalone --nproc-per-node K scripts/forward_uq.py ...`` (one machine) or
+``torchrun --nnodes N --nproc-per-node K --rdzv-endpoint HOST:PORT ...`` (several) starts K (x N)
+copies of a script with ``RANK``, ``WORLD_SIZE``, ``MASTER_ADDR`` and ``MASTER_PORT`` set.
+:func:`ranks` joins them into a gloo process group (CPU); ``torchfra.forward.run_forward`` then
+hands each rank its share of the members (round robin over the members still to solve, as rank
+0's run folder lists them, so every rank agrees) and :func:`share_files` copies each solved
+member's checkpoint from the rank that solved it to every other rank. Every rank ends with the
+whole ensemble in its own run folder, whether or not the ranks share a file system, so a killed
+run resumes from any rank's folder like a one-process run.
+
+Files travel as their bytes (uint8 tensors): the array-only ``.npz`` checkpoints, read back with
+``allow_pickle=False`` as always. Nothing is pickled (``all_gather_object`` would pickle).
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+
+@dataclass(frozen=True)
+class Ranks:
+    """This process's ``rank`` among ``size`` processes; ``size == 1``: no process group."""
+
+    rank: int = 0
+    size: int = 1
+
+    @property
+    def parallel(self) -> bool:
+        return self.size > 1
+
+    def share(self, items: list) -> list:
+        """This rank's round-robin share of ``items``."""
+        return items[self.rank::self.size]
+
+    def owner(self, items: list, item) -> int:
+        return items.index(item) % self.size
+
+
+def ranks() -> Ranks:
+    """The process group of a ``torchrun`` launch (joined once, gloo backend), or one process when
+    the environment names none (``WORLD_SIZE`` unset or 1)."""
+    import torch.distributed as dist
+
+    size = int(os.environ.get("WORLD_SIZE", "1"))
+    if size <= 1 or not dist.is_available():
+        return Ranks()
+    if not dist.is_initialized():
+        dist.init_process_group("gloo")
+    return Ranks(dist.get_rank(), dist.get_world_size())
+
+
+def broadcast_ints(values: list[int] | None, r: Ranks, src: int = 0) -> list[int]:
+    """``values`` of rank ``src`` on every rank."""
+    import torch.distributed as dist
+
+    if not r.parallel:
+        return list(values or [])
+    n = torch.tensor([len(values) if r.rank == src else 0], dtype=torch.int64)
+    dist.broadcast(n, src)
+    data = torch.tensor(values if r.rank == src else [0] * int(n), dtype=torch.int64)
+    dist.broadcast(data, src)
+    return data.tolist()
+
+
+def share_file(path: Path, r: Ranks, src: int) -> None:
+    """Copy ``path`` from rank ``src`` to every rank that does not have it (written aside and renamed)."""
+    import torch.distributed as dist
+
+    if not r.parallel:
+        return
+    data = path.read_bytes() if r.rank == src else b""
+    n = torch.tensor([len(data)], dtype=torch.int64)
+    dist.broadcast(n, src)
+    buf = torch.frombuffer(bytearray(data), dtype=torch.uint8) if r.rank == src else torch.empty(int(n), dtype=torch.uint8)
+    dist.broadcast(buf, src)
+    if r.rank != src and not path.exists():
+        tmp = path.with_name(f"{path.stem}.rank{r.rank}.tmp")
+        tmp.write_bytes(buf.numpy().tobytes())
+        tmp.replace(path)
+
+
+def share_files(paths: list[Path], owners: list[int], r: Ranks) -> None:
+    """Every file of ``paths`` from the rank that wrote it (``owners``) to all the others."""
+    for path, src in zip(paths, owners):
+        share_file(path, r, src)
+
+
+def barrier(r: Ranks) -> None:
+    if r.parallel:
+        import torch.distributed as dist
+
+        dist.barrier()
+
+
+def finish(r: Ranks) -> None:
+    """Leave the process group (after the last collective; torch warns about a group never destroyed)."""
+    if r.parallel:
+        import torch.distributed as dist
+
+        dist.barrier()
+        dist.destroy_process_group()
