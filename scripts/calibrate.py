@@ -4,6 +4,7 @@ Eqs. 21-23), its nonlinear-slave variant, the restart EnKF and the exact grid po
     python scripts/calibrate.py --config seed                  # the paper's experiment (§4.1)
     python scripts/calibrate.py --recording my_dic.csv --noise 0.5 --name bench_test
     python scripts/calibrate.py --recording vic3d_exports/ --pressure trace.csv --landmarks lm.csv --name test1
+    torchrun --standalone --nproc-per-node 2 scripts/calibrate.py --config seed   # forward ensemble on 2 ranks
 
 writes runs/<name>/: summary.json, bands.png, pdfs.png, TensorBoard events; the forward ensemble is
 cached in runs/forward_cache/<settings>/ (shared by runs with the same prior, mesh and load) and the restart filter checkpoints after every step, so a killed
@@ -25,6 +26,8 @@ import torch  # noqa: E402
 
 from torchfra.calibration import (SEED, CalibrationConfig, forward_config, forward_dir, run_calibration,  # noqa: E402
                                   validate_recording)
+from torchfra.distributed import finish, ranks  # noqa: E402
+from torchfra.forward import run_forward  # noqa: E402
 from torchfra.io.dic_import import add_arguments, recording_path  # noqa: E402
 from torchfra.report.calibration import write_calibration_outputs  # noqa: E402
 
@@ -74,6 +77,14 @@ def main(argv=None) -> dict:
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     torch.set_default_dtype(torch.float64)
+    r = ranks()
+    if r.parallel:  # torchrun: the ranks share the forward ensemble; rank 0 does everything else
+        a.workers = 1
+        if r.rank != 0:
+            fwd_only = {"members": a.members, "resolution": a.mesh, "pressure": a.forward_pressure}
+            config = replace(CONFIGS[a.config], **{k: v for k, v in fwd_only.items() if v is not None})
+            run_forward(forward_config(config), forward_dir(config, a.runs_dir), progress=False)
+            return {}
     if a.pressure is not None and a.recording is None:
         raise ValueError("--pressure names the trace of a DIC export: give the export with --recording")
     run_dir = Path(a.runs_dir) / (a.name or a.config)
@@ -89,7 +100,7 @@ def main(argv=None) -> dict:
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # run the cleanup below when killed politely
     helpers = start_forward_helpers(config, run_dir, a.workers - 1)
     try:
-        out = run_calibration(config, run_dir, restart_threads=max(a.threads, a.workers))
+        out = run_calibration(config, run_dir, restart_threads=max(a.threads, a.workers, r.size))
     finally:
         for h in helpers:
             stopped = False
@@ -99,6 +110,7 @@ def main(argv=None) -> dict:
             if h.wait() != 0 and not stopped:
                 print(f"forward helper process {h.pid} failed (exit status {h.returncode}); the members it "
                       "had not saved are solved by a rerun", file=sys.stderr)
+    finish(r, wait=False)  # the other ranks left after the forward ensemble
     summary = write_calibration_outputs(out, run_dir, time.perf_counter() - t0)
     fit = summary.get("data_fit", {"ok": True})
     if not fit["ok"]:  # flagged, never reported as a result

@@ -97,10 +97,11 @@ def barrier(r: Ranks) -> None:
         dist.barrier()
 
 
-def finish(r: Ranks) -> None:
-    """Leave the process group (after the last collective; torch warns about a group never destroyed)."""
+def finish(r: Ranks, wait: bool = True) -> None:
+    """Leave the process group after the last collective (``wait``: once every rank is there)."""
     if r.parallel:
         import torch.distributed as dist
 
-        dist.barrier()
+        if wait:
+            dist.barrier()
         dist.destroy_process_group()
