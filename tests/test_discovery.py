@@ -330,3 +330,24 @@ def test_refit_finds_a_term_that_switches_on_far_from_its_null():
     fit = gauss_newton(phys, white, ["C10", "D1"], start, frames)
     assert abs(fit.z["D1"] - truth["D1"]) < 3 * fit.std("D1"), (fit.z, fit.std("D1"), truth["D1"])
     assert abs(fit.z["C10"] - truth["C10"]) < 3 * fit.std("C10"), (fit.z, fit.std("C10"), truth["C10"])
+
+
+def test_decision_names_every_extension_the_data_cannot_tell_apart():
+    """Of the refits that pass, the largest log evidence decides; another within the decisive margin
+    (5) is named beside it, never dropped; one more than 5 below is not; nothing passed: unexplained.
+    (A bulk and a fiber compliance can both explain a recording once refitted.)"""
+    from torchfra.discovery import decide
+
+    ranking = [{"name": n, "group": [n]} for n in ("compressibility", "fiber_stiffness", "gravity")]
+    ranking.append({"name": "pressure_sensor", "group": ["pressure_sensor", "C10"]})
+
+    def tried(*rows):
+        return [{"candidates": [n], "accepted": ok, "fit": {"log_evidence": ev}} for n, ok, ev in rows]
+
+    t = tried(("compressibility", True, 40.0), ("fiber_stiffness", True, 52.0), ("gravity", False, 90.0))
+    decision, best = decide(t, ranking, 5.0)
+    assert decision == "fiber_stiffness" and best is t[1] and best["chosen"] and "rival" not in t[0]
+    t = tried(("compressibility", True, 49.0), ("fiber_stiffness", True, 52.0))
+    assert decide(t, ranking, 5.0)[0] == "fiber_stiffness|compressibility" and t[0]["rival"]
+    assert decide(tried(("gravity", False, 9.0)), ranking, 5.0) == ("unexplained", None)
+    assert decide(tried(("pressure_sensor", True, 9.0)), ranking, 5.0)[0] == "pressure_sensor|C10"
