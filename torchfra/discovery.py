@@ -21,8 +21,8 @@ The diagnosis of a recording (DESIGN §1.4):
    base parameters' is reported ``confounded_with`` them (a pressure gain with C10: the scaling
    law); candidates whose projected sensitivities nearly coincide form a group. The smallest
    effect each candidate could show at this noise (80 % power at the test level) is reported.
-4. **Refit and decide.** Every significant candidate (up to ``max_refits``, in order of their
-   score statistic) is added alone, and the best pair when none passes, and the extended parameters
+4. **Refit and decide.** Every significant candidate (in order of their score statistic; at most
+   ``max_refits`` when given) is added alone, and the best pair when none passes, and the extended parameters
    refitted by Gauss-Newton, started
    where a coarse scan along the score direction stops falling (``scan_start``: a term that switches
    on far from its null, such as the bulk compliance D1, is invisible to a local fit from there); an
@@ -617,7 +617,7 @@ def _fit_report(fit: Fit, white: Whitener, frames_fit, frames_held, d: int) -> d
 def diagnose(rec: Recording, noise: float | None = None, correlation: float | None = None, candidates="all",
              run_dir=None, resolution: int = 1, load_steps: int = 10, alpha: float = 0.01,
              evidence_threshold: float = 5.0, held_out_every: int = 5, progress: bool = True,
-             max_refits: int = 3) -> dict:
+             max_refits: int | None = None) -> dict:
     """Diagnose ``rec`` (see the module docstring); returns the diagnosis (also written to
     ``run_dir/diagnosis.json`` with figures when ``run_dir`` is given)."""
     t_start = time.perf_counter()
@@ -675,7 +675,7 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
     if where["detected"]:
         decision = "unexplained"
         order = [r for r in ranking if r["significant"] and r["dof"] > 0]
-        singles = [(r["name"],) for r in order[:max_refits]]
+        singles = [(r["name"],) for r in order[:max_refits]]  # None: every significant candidate
         pair = [(order[0]["name"], order[1]["name"])] if len(order) >= 2 else []
         fits = {}
 
