@@ -23,18 +23,11 @@ import numpy as np
 import torch
 
 from . import fem
-from .geometry.actuator import ActuatorGeometry, build_actuator_model
+from .geometry.actuator import ActuatorGeometry, build_actuator_model  # noqa: F401 (re-exported)
 from .observe import ObservationOperator, frame_times, interpolate_in_time, visible_faces
+from .priors import ParameterSet, lognormal_parameters, paper_prior
 
 KAPPA_T = 0.005615  # MPa, the paper's reference value of C10
-
-
-def lognormal_parameters(mean: float, std: float) -> tuple[float, float]:
-    """(mu, sigma) of log X for a lognormal X with the given mean and standard deviation."""
-    if not (mean > 0 and std > 0):
-        raise ValueError(f"a lognormal prior needs mean > 0 and std > 0, got mean={mean}, std={std}")
-    sigma2 = math.log1p((std / mean) ** 2)
-    return math.log(mean) - 0.5 * sigma2, math.sqrt(sigma2)
 
 
 def sample_lognormal(n: int, mean: float, std: float, generator: torch.Generator) -> torch.Tensor:
@@ -64,19 +57,30 @@ class ForwardConfig:
     snapshots: int = 0  # members solved in full for the basis (0: 1 + 2 x varying parameters, at least 3)
     reduced_tol: float = 5e-4  # mm: a reduced member whose check estimates more is solved in full
     reduced_batch: int = 4  # reduced members per batched solve
+    # any parameter set (torchfra.priors): prior specs "NAME=KIND:A,B" and fixed "NAME=VALUE"; empty:
+    # the paper's prior, C10 lognormal (c10_mean, c10_std) with E_fiber fixed
+    parameters: list = field(default_factory=list)
+    fixed: list = field(default_factory=list)
+
+
+def parameter_set(config) -> ParameterSet:
+    """The uncertain and fixed parameters of a forward (or calibration) config."""
+    if not config.parameters:
+        if config.fixed:
+            raise ValueError("fixed parameters need the uncertain ones named too (--param ...)")
+        return paper_prior(config.c10_mean, config.c10_std, config.E_fiber)
+    return ParameterSet.parse(config.parameters, config.fixed)
+
+
+def prior_coordinates(config: ForwardConfig) -> torch.Tensor:
+    """The members' prior draws in the filters' coordinates, (N, d) (log C10 for the paper's prior)."""
+    return parameter_set(config).sample(config.members, torch.Generator().manual_seed(config.seed))
 
 
 def member_parameters(config: ForwardConfig) -> dict[str, torch.Tensor]:
-    """Prior draws and the fixed parameters of every member, name -> (N,)."""
-    gen = torch.Generator().manual_seed(config.seed)
-    C10 = sample_lognormal(config.members, config.c10_mean, config.c10_std, gen)
-    N = config.members
-    return {
-        "C10": C10,
-        "D1": 1.0 / (config.bulk_ratio * C10),
-        "E_fiber": torch.full((N,), config.E_fiber, dtype=torch.float64),
-        "P": torch.full((N,), config.pressure, dtype=torch.float64),
-    }
+    """Prior draws and the fixed parameters of every member: every FE model parameter, name -> (N,)."""
+    return parameter_set(config).model_parameters(prior_coordinates(config), config.pressure, config.bulk_ratio,
+                                                  config.E_fiber)
 
 
 def _check_resume(run_dir: Path, config: ForwardConfig) -> None:
@@ -84,6 +88,8 @@ def _check_resume(run_dir: Path, config: ForwardConfig) -> None:
     saved = asdict(config)
     if path.exists():
         old = json.loads(path.read_text())
+        defaults = json.loads(json.dumps(asdict(type(config)())))
+        old = {**{k: v for k, v in defaults.items() if k not in old}, **old}  # fields added since: their defaults
         if old != json.loads(json.dumps(saved)):
             diff = sorted(k for k in saved if old.get(k) != json.loads(json.dumps(saved))[k])
             raise ValueError(
@@ -277,7 +283,7 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
     _check_resume(run_dir, config)
     torch.set_num_threads(config.threads)
     t0 = time.perf_counter()
-    model, info = build_actuator_model(ActuatorGeometry(resolution=config.resolution), integration=config.integration)
+    model, info = parameter_set(config).build_model(config.resolution, config.integration)
     mesh = model.mesh
     operator = ObservationOperator(mesh, visible_faces(mesh, (1.0, 0.0, 0.0)), points="nodes")
     params = member_parameters(config)
