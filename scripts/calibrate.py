@@ -1,12 +1,16 @@
-"""Calibrate the actuator's C10 from a recording with the hierarchical master/slave EnKF (paper
-Eqs. 21-23), its nonlinear-slave variant, the restart EnKF and the exact grid posterior.
+"""Calibrate the actuator's parameters (C10, or any parameter set) from a recording with the
+hierarchical master/slave EnKF (paper Eqs. 21-23), its nonlinear-slave variant, the restart EnKF
+and the exact grid posterior.
 
     python scripts/calibrate.py --config seed                  # the paper's experiment (§4.1)
+    python scripts/calibrate.py --param C10=lognormal:0.0062,0.0011 --param E_fiber=lognormal:31000,8000 \
+        --truth C10=0.0048 --truth E_fiber=25000 --name two_params   # two parameters, synthetic recording
+    python scripts/calibrate.py --config my_actuator.toml --recording my_dic.csv --noise 0.5
     python scripts/calibrate.py --recording my_dic.csv --noise 0.5 --name bench_test
     python scripts/calibrate.py --recording vic3d_exports/ --pressure trace.csv --landmarks lm.csv --name test1
     torchrun --standalone --nproc-per-node 2 scripts/calibrate.py --config seed   # forward ensemble on 2 ranks
 
-writes runs/<name>/: summary.json, bands.png, pdfs.png, TensorBoard events; the forward ensemble is
+writes runs/<name>/: summary.json, bands.png, pdfs.png (pairs.png for several parameters), TensorBoard events; the forward ensemble is
 cached in runs/forward_cache/<settings>/ (shared by runs with the same prior, mesh and load) and the restart filter checkpoints after every step, so a killed
 run resumes without redoing finished FE work.
 """
@@ -29,6 +33,7 @@ from torchfra.calibration import (SEED, CalibrationConfig, forward_config, forwa
 from torchfra.distributed import finish, ranks  # noqa: E402
 from torchfra.forward import run_forward  # noqa: E402
 from torchfra.io.dic_import import add_arguments, recording_path  # noqa: E402
+from torchfra.priors import ParameterSet, parse_truth, read_parameter_file  # noqa: E402
 from torchfra.report.calibration import write_calibration_outputs  # noqa: E402
 
 CONFIGS = {"seed": SEED}
@@ -46,21 +51,52 @@ def start_forward_helpers(config: CalibrationConfig, run_dir: Path, n: int) -> l
     cmd = [sys.executable, str(Path(__file__).with_name("forward_uq.py")), "--members", str(fwd.members),
            "--mesh", str(fwd.resolution), "--seed", str(fwd.seed), "--pressure", repr(fwd.pressure),
            "--load-steps", str(fwd.load_steps), "--chunk", str(fwd.chunk), "--threads", str(fwd.threads),
-           "--method", fwd.method,
+           "--method", fwd.method, *[f"--param={x}" for x in fwd.parameters], *[f"--fixed={x}" for x in fwd.fixed],
            "--runs-dir", str(where.parent), "--out", where.name, "--quiet"]
     env = dict(os.environ, MKL_NUM_THREADS=str(fwd.threads), OMP_NUM_THREADS=str(fwd.threads))
     return [subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL) for _ in range(n)]
 
 
+def _base_config(a) -> tuple[CalibrationConfig, dict]:
+    """The named config or the TOML file's, and the parameter set given by flags or file (empty: the
+    config's own, the paper's C10 prior)."""
+    prior: dict = {}
+    if a.config in CONFIGS:
+        base = CONFIGS[a.config]
+    elif a.config.endswith(".toml"):
+        base = SEED
+        prior = read_parameter_file(a.config)
+    else:
+        raise ValueError(f"--config {a.config!r}: not a named config ({', '.join(sorted(CONFIGS))}) nor a .toml file "
+                         "of priors")
+    if a.param or a.fixed:
+        if prior:
+            raise ValueError("give the parameters in the --config file or by --param/--fixed, not both")
+        ParameterSet.parse(a.param or [], a.fixed or [])  # checked here: each bad entry named before any work
+        prior = {"parameters": list(a.param or []), "fixed": list(a.fixed or [])}
+        if not a.param:
+            raise ValueError("--fixed needs the uncertain parameters named with --param")
+    return base, prior
+
+
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--config", choices=sorted(CONFIGS), default="seed", help="named settings to start from")
+    p.add_argument("--config", default="seed",
+                   help="named settings to start from (seed: the paper's experiment), or a TOML file of priors "
+                        "([parameters], optional [fixed] and [truth] tables; see torchfra.priors)")
+    p.add_argument("--param", action="append", default=None, metavar="NAME=KIND:A,B",
+                   help="an uncertain parameter and its prior for the parameter itself: lognormal:MEAN,STD, "
+                        "normal:MEAN,STD or uniform:LOW,HIGH (repeat for several; default the config's C10 prior)")
+    p.add_argument("--fixed", action="append", default=None, metavar="NAME=VALUE",
+                   help="a parameter held at a value (repeatable), e.g. E_fiber=31000")
     p.add_argument("--name", default=None, help="run name: outputs go to <runs-dir>/<name>/ (default: the config)")
     p.add_argument("--runs-dir", default="runs")
     p.add_argument("--recording", default=None,
                    help="CSV/NPZ recording (default: synthetic at --truth), or with --pressure a DIC export "
                         "(a folder of per-frame files or one file), converted into runs/<name>/recording.csv")
-    p.add_argument("--truth", type=float, default=None, help="C10 of the synthetic recording (MPa)")
+    p.add_argument("--truth", action="append", default=None, metavar="[NAME=]VALUE",
+                   help="value of the synthetic recording: a number for C10 (MPa), or NAME=VALUE per uncertain "
+                        "parameter (repeatable; a parameter not given takes its null value)")
     p.add_argument("--noise", type=float, default=None, help="observation noise std (mm)")
     p.add_argument("--members", type=int, default=None, help="ensemble size N_s")
     p.add_argument("--mesh", type=int, default=None, help="mesh resolution of the FE model")
@@ -77,22 +113,33 @@ def main(argv=None) -> dict:
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     torch.set_default_dtype(torch.float64)
+    base, prior = _base_config(a)
     r = ranks()
     if r.parallel:  # torchrun: the ranks share the forward ensemble; rank 0 does everything else
         a.workers = 1
         if r.rank != 0:
             fwd_only = {"members": a.members, "resolution": a.mesh, "pressure": a.forward_pressure}
-            config = replace(CONFIGS[a.config], **{k: v for k, v in fwd_only.items() if v is not None})
+            config = replace(base, **prior, **{k: v for k, v in fwd_only.items() if v is not None})
             run_forward(forward_config(config), forward_dir(config, a.runs_dir), progress=False)
             return {}
     if a.pressure is not None and a.recording is None:
         raise ValueError("--pressure names the trace of a DIC export: give the export with --recording")
-    run_dir = Path(a.runs_dir) / (a.name or a.config)
+    run_dir = Path(a.runs_dir) / (a.name or Path(a.config).stem)
     if a.recording is not None:
         a.recording = str(recording_path(a.recording, a, run_dir))
-    overrides = {"recording": a.recording, "truth_c10": a.truth, "noise": a.noise, "members": a.members,
-                 "resolution": a.mesh, "pressure": a.forward_pressure, "restart_every": a.restart_every, "coverage_seeds": a.coverage_seeds}
-    config: CalibrationConfig = replace(CONFIGS[a.config], **{k: v for k, v in overrides.items() if v is not None})
+    truth = {**prior.pop("truth", {}), **parse_truth(a.truth)}
+    overrides = {"recording": a.recording, "truth_c10": truth.pop("C10", None), "noise": a.noise, "members": a.members,
+                 "resolution": a.mesh, "pressure": a.forward_pressure, "restart_every": a.restart_every,
+                 "coverage_seeds": a.coverage_seeds}
+    config: CalibrationConfig = replace(base, **prior, **{k: v for k, v in overrides.items() if v is not None})
+    if truth and config.recording is None:
+        config = replace(config, truth=truth)
+    elif truth:
+        raise ValueError("--truth sets the synthetic recording's values; a recording file has its own")
+    if config.recording is None and config.parameters:
+        from torchfra.calibration import truth_values
+
+        truth_values(config)  # every value checked against its prior before any FE work
     if a.no_restart:
         config = replace(config, restart=False)
     t0 = time.perf_counter()
@@ -118,7 +165,7 @@ def main(argv=None) -> dict:
               + f"\n(the filters' outputs are in {run_dir} for inspection only)", file=sys.stderr)
         print(json.dumps({"result": None, "data_fit": fit, "run": str(run_dir)}, indent=1))
         return summary
-    print(json.dumps({"filters": {k: v["C10"] for k, v in summary["filters"].items()},
+    print(json.dumps({"filters": {k: {p: v[p] for p in summary["parameters"]} for k, v in summary["filters"].items()},
                       "truth": summary["truth"], "run": str(run_dir)}, indent=1))
     return summary
 

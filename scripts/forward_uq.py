@@ -1,6 +1,7 @@
 """Forward propagation of the prior ensemble through the actuator model (paper Eq. 15).
 
     python scripts/forward_uq.py --members 100 --mesh 2 --seed 0 --out forward
+    python scripts/forward_uq.py --param C10=lognormal:0.0062,0.0011 --param C01=uniform:0,0.002 --out fwd_mr
 
 writes runs/<out>/: forward.npz (times, pressure, params, points, Y (N, T, P, 2), status),
 summary.json, TensorBoard events, tracked_node.png, mean_deformed.vtu. A killed run resumes from
@@ -21,13 +22,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from torchfra.distributed import finish, ranks  # noqa: E402
 from torchfra.forward import ForwardConfig, run_forward  # noqa: E402
+from torchfra.priors import ParameterSet, read_parameter_file  # noqa: E402
 from torchfra.report.forward import write_forward_outputs  # noqa: E402
 
 
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     d = ForwardConfig()
-    p.add_argument("--members", type=int, default=d.members, help="ensemble members (prior draws of C10)")
+    p.add_argument("--members", type=int, default=d.members, help="ensemble members (prior draws)")
     p.add_argument("--mesh", type=int, default=d.resolution, help="mesh resolution knob (1 = coarsest)")
     p.add_argument("--seed", type=int, default=d.seed, help="seed of the prior draws")
     p.add_argument("--out", default="forward", help="run name: outputs go to <runs-dir>/<out>/")
@@ -47,12 +49,29 @@ def main(argv=None) -> dict:
                    help="members solved in full for the reduced basis (0: 1 + 2 x varying directions, at least 3)")
     p.add_argument("--reduced-tol", type=float, default=d.reduced_tol,
                    help="mm: a reduced member whose check estimates a larger error is solved in full")
+    p.add_argument("--param", action="append", default=[], metavar="NAME=KIND:A,B",
+                   help="an uncertain parameter and its prior (lognormal:MEAN,STD, normal:MEAN,STD, uniform:LOW,HIGH); "
+                        "repeatable; default the paper's C10 prior")
+    p.add_argument("--fixed", action="append", default=[], metavar="NAME=VALUE", help="a parameter held at a value")
+    p.add_argument("--config", default=None, help="a TOML file of priors ([parameters], optional [fixed])")
+    p.add_argument("--newton-budget", type=int, default=d.newton_budget,
+                   help="Newton iterations one member may spend (0: no limit); a member that spends them stops, "
+                        "flagged as not converged")
     p.add_argument("--quiet", action="store_true", help="no progress bar (helper processes)")
     a = p.parse_args(argv)
+    if a.config is not None:
+        if a.param or a.fixed:
+            raise ValueError("give the parameters in the --config file or by --param/--fixed, not both")
+        f = read_parameter_file(a.config)
+        a.param, a.fixed = f["parameters"], f["fixed"]
+    if a.fixed and not a.param:
+        raise ValueError("--fixed needs the uncertain parameters named with --param")
+    ParameterSet.parse(a.param, a.fixed) if a.param else None  # each bad entry named before any work
     config = ForwardConfig(members=a.members, resolution=a.mesh, seed=a.seed, load_steps=a.load_steps,
                            frames=a.frames, chunk=a.chunk, bulk_ratio=a.bulk_ratio, pressure=a.pressure,
                            threads=a.threads, integration=a.integration, method=a.method, snapshots=a.snapshots,
-                           reduced_tol=a.reduced_tol)
+                           reduced_tol=a.reduced_tol, parameters=list(a.param), fixed=list(a.fixed),
+                           newton_budget=a.newton_budget)
     run_dir = Path(a.runs_dir) / a.out
     r = ranks()
     out = run_forward(config, run_dir, progress=not a.quiet)

@@ -2,6 +2,7 @@
 
     python scripts/make_recording.py --c10 0.0048 --noise 1.0 --seed 0 --out runs/recordings/paper.csv
     python scripts/make_recording.py --points 2.0 --cycles 2 --out runs/recordings/grid_cycles.npz
+    python scripts/make_recording.py --value C01=0.001 --value E_fiber=25000 --out runs/recordings/mr.csv
 
 The FE model is solved at every frame's pressure, observed (y, z displacements) at the visible face's
 nodes or on a regular DIC-like grid (spacing in mm), and perturbed with independent N(0, noise^2)
@@ -19,6 +20,7 @@ import torch  # noqa: E402
 
 from torchfra.calibration import synthetic_recording  # noqa: E402
 from torchfra.observe import frame_times  # noqa: E402
+from torchfra.priors import parse_fixed  # noqa: E402
 from torchfra.recordings import write_recording  # noqa: E402
 
 
@@ -42,6 +44,9 @@ def main(argv=None) -> Path:
     p.add_argument("--frames", type=int, default=100)
     p.add_argument("--pressure", type=float, default=0.022, help="peak cavity pressure (MPa)")
     p.add_argument("--cycles", type=int, default=0, help="loading-unloading cycles (0: one linear ramp)")
+    p.add_argument("--value", action="append", default=[], metavar="NAME=VALUE",
+                   help="another model parameter at a value (repeatable), e.g. C01=0.001 (Mooney-Rivlin), "
+                        "E_fiber=25000, density=1.1e-9 (gravity), D1=0.5; the others keep the base model's")
     p.add_argument("--out", default="runs/recordings/recording.csv", help=".csv or .npz")
     p.add_argument("--threads", type=int, default=1)
     a = p.parse_args(argv)
@@ -52,11 +57,19 @@ def main(argv=None) -> Path:
             float(a.points)
         except ValueError:
             p.error(f"--points must be 'nodes' or a grid spacing in mm, got {a.points!r}")
+    values = dict(parse_fixed(v, "--value") for v in a.value)  # each bad entry named before any work
+    if "C10" in values:
+        p.error("give C10 with --c10")
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)  # a bad folder fails now, not after the FE solves
     torch.set_num_threads(a.threads)
     torch.set_default_dtype(torch.float64)
     times, pressure = pressure_trace(a.frames, a.pressure, a.cycles)
-    rec, _ = synthetic_recording(a.c10, a.mesh, a.points, a.noise, a.seed, times, pressure, progress=True)
+    if values:  # the model with the candidates these parameters need; the prior is only a carrier here
+        rec, _ = synthetic_recording({"C10": a.c10}, a.mesh, a.points, a.noise, a.seed, times, pressure, progress=True,
+                                     parameters=[f"C10=lognormal:{a.c10!r},{0.1 * a.c10!r}"],
+                                     fixed=[f"{k}={v!r}" for k, v in values.items()])
+    else:
+        rec, _ = synthetic_recording(a.c10, a.mesh, a.points, a.noise, a.seed, times, pressure, progress=True)
     path = write_recording(a.out, rec)
     print(f"{path}: {rec.n_frames} frames x {rec.n_points} points")
     return path

@@ -27,11 +27,21 @@ def _script(args, tmp_path):
     (["scripts/make_recording.py", "--out", "{tmp}/a_file/r.csv"], "a_file: File exists"),
     (["scripts/forward_uq.py", "--runs-dir", "{tmp}/a_file"], "a_file/forward: Not a directory"),
     (["scripts/fem_demo.py", "--runs-dir", "{tmp}/a_file"], "a_file/fem_demo: Not a directory"),
+    (["scripts/calibrate.py", "--param", "C11=lognormal:1,0.1"], "unknown parameter 'C11'; the model's parameters are"),
+    (["scripts/calibrate.py", "--param", "C10=lognormal:0.006,0.001", "--truth", "C01=0.001"],
+     r"C01'] are not uncertain parameters of this set"),
+    (["scripts/calibrate.py", "--param", "C01=uniform:0,0.002", "--truth", "C01=0.005"], "C10 needs a prior"),
+    (["scripts/calibrate.py", "--param", "C10=lognormal:0.006,0.001", "--param", "C01=uniform:0,0.002",
+      "--truth", "C01=0.005"], "lie outside their prior's support"),
+    (["scripts/calibrate.py", "--config", "{tmp}/prior.toml"], "prior.toml: --param 'C10=normal:0.006,0.003': C10 must"),
+    (["scripts/forward_uq.py", "--param", "density=normal:0,1e-9"], "density must lie in [0, 2.5e-08]"),
+    (["scripts/make_recording.py", "--value", "E_fiber=-1"], "E_fiber must lie in"),
 ])
 def test_scripts_end_a_wrong_input_with_one_paragraph(tmp_path, args, message):
     (tmp_path / "folder.csv").mkdir()
     (tmp_path / "utf16.csv").write_text("frame,time,pressure,point_id,X,Y,Z,uy,uz\n", encoding="utf-16")
     (tmp_path / "a_file").write_text("")
+    (tmp_path / "prior.toml").write_text('[parameters]\nC10 = "normal:0.006,0.003"\n')
     for name, p in (("kpa", 22.0), ("high", 0.03)):  # a point of the visible face; the last frame's pressure
         (tmp_path / f"{name}.csv").write_text("frame,time,pressure,point_id,X,Y,Z,uy,uz\n"
                                               f"0,0.5,0.01,1,8,0,30,0.1,0.2\n1,1.0,{p},1,8,0,30,0.2,0.4\n")

@@ -113,6 +113,21 @@ def test_failing_member_reported_others_finish():
     assert (alone.u[0] - sol.u[0]).abs().max() < 1e-10 * sol.u[0].abs().max()
 
 
+def test_a_member_stops_when_its_newton_budget_is_spent():
+    """``member_budget``: a hopeless member stops after that many Newton iterations, flagged
+    'diverged' at the load it reached, instead of cutting back to the minimum increment; the other
+    member's answer is unchanged (1e-10) and its own iterations are far below the budget."""
+    mesh = box_mesh((2.0, 2.0, 6.0), (2, 2, 3))
+    params = {"C10": torch.tensor([0.05, 0.05]), "D1": torch.tensor([0.2, 0.2]), "P": torch.tensor([0.003, 0.5])}
+    free = fem.solve(_bending_model(mesh), params, [0.5, 1.0], fem.NewtonOptions(min_increment=1e-4, max_iterations=10))
+    budget = fem.NewtonOptions(min_increment=1e-4, max_iterations=10, member_budget=30)
+    sol = fem.solve(_bending_model(mesh), params, [0.5, 1.0], budget)
+    assert free.iterations[1] > 60 and free.iterations[0] < 30  # the budget binds the hopeless member only
+    assert sol.status.tolist() == ["converged", "diverged"] and sol.iterations[1] == 30
+    assert 0 < sol.load_reached[1] < 1.0 and torch.isnan(sol.u[1, -1]).all()
+    assert (free.u[0] - sol.u[0]).abs().max() < 1e-10 * sol.u[0].abs().max()
+
+
 def test_hybrid_newton_takes_a_full_load_step():
     """Near-incompressible bending (K/mu = 100) under a follower pressure with a rigid top, solved in
     ONE load increment: the element pressures are Newton unknowns (u-p Newton, as Abaqus hybrid

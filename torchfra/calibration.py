@@ -12,11 +12,12 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import pickle
 import re
 import time
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -24,8 +25,7 @@ import scipy.sparse as sp
 import torch
 
 from . import fem
-from .forward import ForwardConfig, lognormal_parameters
-from .geometry.actuator import ActuatorGeometry, build_actuator_model
+from .forward import ForwardConfig, parameter_set
 from .observe import ObservationError, ObservationOperator, frame_times, visible_faces
 from .assimilation.filters import PolynomialSlave
 from .recordings import Recording, RecordingError
@@ -53,6 +53,12 @@ class CalibrationConfig:
     grid: int = 4000
     pressure: float = 0.022  # MPa at t = 1 of the synthetic recording; the forward ensemble's range
     load_steps: int = 20
+    # any parameter set (torchfra.priors): prior specs "NAME=KIND:A,B" and fixed "NAME=VALUE" (empty:
+    # the paper's prior of C10); ``truth``: values of the synthetic recording's uncertain parameters
+    # other than C10 (``truth_c10``), a missing one at its null value
+    parameters: list = field(default_factory=list)
+    fixed: list = field(default_factory=list)
+    truth: dict = field(default_factory=dict)
 
 
 SEED = CalibrationConfig()  # --config seed: the paper's numerical experiment (§4.1)
@@ -63,13 +69,25 @@ def forward_dir(config: CalibrationConfig, runs_dir) -> Path:
     every calibration run with the same prior, mesh and load (a new recording needs no new FE work)."""
     f = forward_config(config)
     method = "" if f.method == "full" else f"_{f.method}"
+    prior = f"_prior{parameter_set(f).key()}" if f.parameters else ""  # the paper's prior keeps its old name
     return Path(runs_dir) / "forward_cache" / (f"mesh{f.resolution}_N{f.members}_seed{f.seed}_P{f.pressure:g}"
-                                               f"_steps{f.load_steps}{method}")
+                                               f"_steps{f.load_steps}{method}{prior}")
 
 
 def forward_config(config: CalibrationConfig) -> ForwardConfig:
     return ForwardConfig(members=config.members, resolution=config.resolution, seed=config.seed,
-                         pressure=config.pressure, load_steps=config.load_steps)
+                         pressure=config.pressure, load_steps=config.load_steps,
+                         parameters=list(config.parameters), fixed=list(config.fixed))
+
+
+def truth_values(config: CalibrationConfig) -> dict[str, float]:
+    """The synthetic recording's value of every uncertain parameter (C10 from ``truth_c10``, the
+    others from ``truth`` or their null value)."""
+    pset = parameter_set(forward_config(config))
+    given = {"C10": config.truth_c10, **config.truth} if "C10" in pset.names else dict(config.truth)
+    Q = pset.values(given, where="truth of the synthetic recording")  # checks every value against its prior
+    return {n: float(given[n]) if n in given else float(p.natural(Q[:, j])[0]) for j, (n, p) in
+            enumerate(zip(pset.names, pset.priors))}
 
 
 def recording_operator(mesh, rec: Recording, tol: float = 1e-3) -> ObservationOperator:
@@ -135,12 +153,13 @@ def point_map(rec_op: ObservationOperator, fwd_op: ObservationOperator) -> sp.cs
 # -- the FE model at given parameters ----------------------------------------------------------------
 
 class ActuatorSolver:
-    """The actuator at resolution ``resolution`` for C10 values, observed at a recording's points."""
+    """The actuator at resolution ``resolution`` with the parameter set of ``fwd``, observed at a
+    recording's points."""
 
     def __init__(self, resolution: int, rec: Recording | None = None, fwd: ForwardConfig | None = None):
         self.fwd = fwd or ForwardConfig(resolution=resolution)
-        self.model, self.info = build_actuator_model(ActuatorGeometry(resolution=resolution),
-                                                     integration=self.fwd.integration)
+        self.pset = parameter_set(self.fwd)
+        self.model, self.info = self.pset.build_model(resolution, self.fwd.integration)
         self.model.finalize()
         self.mesh = self.model.mesh
         self.operator = None if rec is None else recording_operator(self.mesh, rec)
@@ -152,22 +171,32 @@ class ActuatorSolver:
                 "E_fiber": torch.full((N,), self.fwd.E_fiber, dtype=torch.float64),
                 "P": torch.full((N,), self.fwd.pressure, dtype=torch.float64)}
 
+    def params_q(self, Q: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Every model parameter of the filters' coordinates Q (N, d) of the parameter set."""
+        if self.pset.d == 1 and not self.fwd.parameters:  # the paper's prior: exactly as the C10 path
+            return self.params(torch.exp(Q[:, 0]))
+        return self.pset.model_parameters(Q, self.fwd.pressure, self.fwd.bulk_ratio, self.fwd.E_fiber)
+
     def options(self, **kw) -> fem.NewtonOptions:
         return fem.NewtonOptions(**{**self.fwd.newton, **kw})
 
 
-def synthetic_recording(c10: float, resolution: int = 1, points="nodes", noise: float = 1.0, seed: int = 0,
-                        times=None, pressure=None, progress: bool = False) -> tuple[Recording, np.ndarray]:
-    """A recording made by the model itself at C10 = ``c10``: the FE model is solved at every
-    frame's pressure (no interpolation in time), observed at ``points`` ("nodes" of the visible
-    face, or a DIC-like grid spacing in mm), and perturbed with N(0, noise^2) per component.
-    Returns the recording and its noise-free observations (K, P, 2)."""
+def synthetic_recording(c10, resolution: int = 1, points="nodes", noise: float = 1.0, seed: int = 0,
+                        times=None, pressure=None, progress: bool = False, parameters=(), fixed=()
+                        ) -> tuple[Recording, np.ndarray]:
+    """A recording made by the model itself at C10 = ``c10`` (or, with a parameter set ``parameters``
+    / ``fixed`` as in :class:`ForwardConfig`, at the values ``c10 = {name: value}`` of its uncertain
+    parameters): the FE model is solved at every frame's pressure (no interpolation in time),
+    observed at ``points`` ("nodes" of the visible face, or a DIC-like grid spacing in mm), and
+    perturbed with N(0, noise^2) per component. Returns the recording and its noise-free
+    observations (K, P, 2)."""
     from .observe import regular_grid
 
     times = frame_times(100) if times is None else np.asarray(times, dtype=np.float64)
     fwd = ForwardConfig(resolution=resolution)
     pressure = fwd.pressure * times if pressure is None else np.asarray(pressure, dtype=np.float64)
-    solver = ActuatorSolver(resolution, fwd=ForwardConfig(resolution=resolution, pressure=float(np.max(pressure))))
+    solver = ActuatorSolver(resolution, fwd=ForwardConfig(resolution=resolution, pressure=float(np.max(pressure)),
+                                                          parameters=list(parameters), fixed=list(fixed)))
     mesh = solver.mesh
     faces = visible_faces(mesh, (1.0, 0.0, 0.0))
     if isinstance(points, str) and points == "nodes":
@@ -176,10 +205,15 @@ def synthetic_recording(c10: float, resolution: int = 1, points="nodes", noise: 
         op = ObservationOperator(mesh, faces, points=regular_grid(mesh, faces, float(points)))
     lam = pressure / solver.fwd.pressure
     distinct = np.unique(lam[lam > 0])
-    sol = fem.solve(solver.model, solver.params([c10]), distinct, solver.options(),
-                    progress=f"synthetic recording: FE solve at C10 = {c10:g} MPa" if progress else False)
+    if isinstance(c10, dict):
+        params = solver.params_q(solver.pset.values(c10))
+        where = ", ".join(f"{k} = {v:g}" for k, v in c10.items())
+    else:
+        params, where = solver.params([c10]), f"C10 = {c10:g} MPa"
+    sol = fem.solve(solver.model, params, distinct, solver.options(),
+                    progress=f"synthetic recording: FE solve at {where}" if progress else False)
     if sol.status[0] != "converged":
-        raise RuntimeError(f"the model did not converge at C10 = {c10} (reached load {sol.load_reached[0]:.3f})")
+        raise RuntimeError(f"the model did not converge at {where} (reached load {sol.load_reached[0]:.3f})")
     Y = op(sol.u[0, :, : mesh.n_nodes]).numpy()  # (distinct, P, 2)
     clean = np.zeros((len(times), op.n_points, 2))
     pos = lam > 0
@@ -229,7 +263,7 @@ class RestartForecaster:
     def __call__(self, Q: torch.Tensor, k: int) -> torch.Tensor:
         s = self.solver
         target = np.full(len(Q), self.lam[k])
-        params = s.params(torch.exp(Q[:, 0]))
+        params = s.params_q(Q)
         if self.reduced is not None:
             return self._reduced(params, k, target)
         sol = fem.solve(s.model, params, [1.0],
@@ -239,7 +273,8 @@ class RestartForecaster:
         failed = np.flatnonzero(sol.status != "converged")
         if failed.size:
             raise RuntimeError(f"restart filter: members {failed.tolist()} did not converge at frame {self.frames[k]} "
-                               f"(C10 = {torch.exp(Q[failed, 0]).tolist()}); the run can be resumed after a fix")
+                               f"({ {n: v[failed].tolist() for n, v in s.pset.natural(Q).items()} }); the run can be "
+                               "resumed after a fix")
         self.x, self.lam_now = sol.x_last, target
         Y = s.operator(sol.u[:, -1, : s.mesh.n_nodes])
         return Y.reshape(len(Q), -1)
@@ -294,6 +329,132 @@ def _stats(c10) -> dict[str, float]:
     return summarize(np.asarray(c10).reshape(-1))
 
 
+def ensemble_stats(pset, Q: torch.Tensor) -> dict[str, dict[str, float]]:
+    """Per parameter: mean, std, p10, p90 of an ensemble of coordinates Q (N, d)."""
+    if pset.d == 1 and pset.priors[0].kind == "lognormal":
+        return {pset.names[0]: _stats(torch.exp(Q[:, 0]))}  # the paper's path, to the last digit
+    return {n: _stats(v) for n, v in pset.natural(Q).items()}
+
+
+def natural_of(prior):
+    """q -> parameter value on numpy arrays (exp for a lognormal prior)."""
+    if prior.kind == "lognormal":
+        return np.exp
+    return lambda q: prior.natural(torch.as_tensor(np.asarray(q, dtype=np.float64))).numpy()
+
+
+@dataclass
+class ExactPosterior:
+    """The exact posterior of a parameter set: ``raw`` the grid (1-D :class:`GridPosterior` or
+    :class:`TensorPosterior`), per-parameter ``stats()`` in natural units."""
+
+    raw: object
+    names: list
+    naturals: list
+
+    @property
+    def d(self) -> int:
+        return len(self.names)
+
+    def stats(self, step: int = -1) -> dict:
+        if self.d == 1:
+            return {self.names[0]: self.raw.stats(step, natural=self.naturals[0])}
+        if step != -1:
+            raise ValueError("the tensor-grid posterior is kept after the last frame only")
+        return self.raw.stats()
+
+    @property
+    def log_evidence(self) -> float:
+        return float(self.raw.log_evidence[-1]) if self.d == 1 else float(self.raw.log_evidence)
+
+    def edge_mass(self) -> float:
+        return self.raw.edge_mass() if self.d == 1 else float(self.raw.edge_mass)
+
+    @property
+    def prior_mass_outside(self) -> float:
+        return float(self.raw.prior_mass_outside)
+
+    def density(self, j: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """(x, marginal pdf of parameter j)."""
+        if self.d == 1:
+            return self.raw.density(natural=self.naturals[0])
+        q, dens = self.raw.marginal(j)
+        x = np.asarray(self.naturals[j](q))
+        jac = x if self.naturals[j] is np.exp else np.abs(np.gradient(x, q))  # dx/dq
+        return x, dens / jac
+
+
+class ExactReference:
+    """The exact posterior's map through the forward members: for one parameter the cubic spline
+    through them (a sweep, :class:`SweepMap`), for two or three the tensor-product Legendre map
+    (:class:`~torchfra.assimilation.exact_nd.TensorMap`); each with its leave-one-out error."""
+
+    def __init__(self, pset, Q0: torch.Tensor, Y: np.ndarray, grid: int = 4000):
+        from .assimilation import SweepMap
+        from .assimilation.exact_nd import TensorMap
+
+        if pset.d > 6:
+            raise ValueError(f"{pset.d} uncertain parameters: calibrate at most 6 at once")
+        self.pset, self.d, self.grid = pset, pset.d, grid
+        self.names = pset.names
+        self.naturals = [natural_of(p) for p in pset.priors]
+        m, sd = pset.gaussian()
+        self.prior_mean, self.prior_std = m.numpy(), sd.numpy()
+        if self.d == 1:
+            self.map = SweepMap(Q0[:, 0].numpy(), Y)
+            self.loo_error_rms = None
+            self.kind = f"cubic spline through the {len(Q0)} forward members (a parameter sweep)"
+        else:
+            self.map = TensorMap(Q0.numpy(), Y)
+            self.loo_error_rms = self.map.loo_error_rms
+            basis = "per parameter" if self.map.basis == "tensor" else "in total"
+            self.kind = (f"Legendre polynomial map of degree {self.map.degree} {basis}, least squares through the "
+                         f"{len(Q0)} forward members; posterior "
+                         + ("on a tensor grid along its principal axes" if self.d <= 3 else
+                            "by importance sampling (t proposal at the Laplace point)"))
+
+    @property
+    def loo_error(self) -> float:
+        """Largest leave-one-out error of the map through the members (units of Y)."""
+        if self.d == 1:
+            if not hasattr(self, "_loo"):
+                self._loo = self.map.leave_one_out_error()
+            return self._loo
+        return self.map.loo_error
+
+    def predict(self, Q) -> np.ndarray:
+        """(N, d) coordinates -> (N, K, m) observations."""
+        Q = np.asarray(Q, dtype=np.float64)
+        return self.map(Q[:, 0]) if self.d == 1 else self.map(Q)
+
+    def forecaster(self, frames):
+        return self.map.forecaster(frames)
+
+    def posterior(self, Z, r, frames=None) -> ExactPosterior:
+        from .assimilation import grid_posterior
+        from .assimilation.exact_nd import sampled_posterior, tensor_posterior
+
+        if self.d > 3:
+            raw = sampled_posterior(self.map, Z, r, self.prior_mean, self.prior_std, self.names, self.naturals,
+                                    frames=frames)
+        elif self.d == 1:
+            raw = grid_posterior(self.map, Z, r, float(self.prior_mean[0]), float(self.prior_std[0]), self.grid,
+                                 frames=frames)
+        else:
+            raw = tensor_posterior(self.map, Z, r, self.prior_mean, self.prior_std, self.names, self.naturals,
+                                   frames=frames)
+        return ExactPosterior(raw, list(self.names), self.naturals)
+
+    def data_fit(self, post: ExactPosterior, Z, r) -> dict:
+        from .assimilation import data_fit
+        from .assimilation.exact_nd import data_fit_nd
+
+        if self.d == 1:
+            f = self.naturals[0]
+            return data_fit(post.raw, self.map, Z, r, natural=math.exp if f is np.exp else lambda q: float(f(q)))
+        return data_fit_nd(post.raw, self.map, Z, r)
+
+
 def _load_recording(config: CalibrationConfig, run_dir: Path, progress: bool):
     """The recording to calibrate on, and its noise-free observations and truth when synthetic."""
     from .recordings import read_recording, write_recording
@@ -303,19 +464,23 @@ def _load_recording(config: CalibrationConfig, run_dir: Path, progress: bool):
     path, clean_path = run_dir / "recording.csv", run_dir / "recording_clean.npz"
     made_by = {k: getattr(config, k) for k in ("truth_c10", "noise", "noise_seed", "points", "frames", "pressure",
                                                "resolution")}
+    if config.parameters:  # recordings of the paper's prior keep their old record
+        made_by.update(parameters=config.parameters, fixed=config.fixed, truth=truth_values(config))
+    truth = truth_values(config)
     if path.exists() and clean_path.exists():
         saved = json.loads(str(np.load(clean_path, allow_pickle=False)["made_by"]))
         if saved != json.loads(json.dumps(made_by)):
             raise RecordingError(f"{path} was made with other settings ({saved}); choose another --name, or "
                                  "delete the run folder's recording files to make a new one")
-        return read_recording(path), np.load(clean_path, allow_pickle=False)["clean"], config.truth_c10
+        return read_recording(path), np.load(clean_path, allow_pickle=False)["clean"], truth
     times = frame_times(config.frames)
-    rec, clean = synthetic_recording(config.truth_c10, config.resolution, config.points, config.noise,
-                                     config.noise_seed, times, config.pressure * times, progress=progress)
+    rec, clean = synthetic_recording(truth if config.parameters else config.truth_c10, config.resolution,
+                                     config.points, config.noise, config.noise_seed, times, config.pressure * times,
+                                     progress=progress, parameters=config.parameters, fixed=config.fixed)
     write_recording(path, rec)
     np.savez(clean_path.with_suffix(".tmp.npz"), clean=clean, made_by=json.dumps(made_by))
     clean_path.with_suffix(".tmp.npz").replace(clean_path)  # written last: marks the pair complete
-    return read_recording(path), clean, config.truth_c10
+    return read_recording(path), clean, truth
 
 
 class CheckpointError(ValueError):
@@ -347,7 +512,8 @@ def read_restart_checkpoint(path: Path) -> dict:
 
 
 RESTART_KEYS = ("members", "resolution", "seed", "recording", "truth_c10", "noise", "noise_seed", "points", "frames",
-                "filter_seed", "restart_every", "pressure", "load_steps")  # what shapes the restart filter
+                "filter_seed", "restart_every", "pressure", "load_steps", "parameters", "fixed",
+                "truth")  # what shapes the restart filter
 
 
 def _forward_reduction(solver: ActuatorSolver, fwd_dir):
@@ -374,7 +540,8 @@ def _restart(config, run_dir, rec, lam, Q0, Z, r, tracked, progress, fwd_dir=Non
     if ckpt.exists():
         saved = read_restart_checkpoint(ckpt)
         now = config_dict(config)
-        if (all(saved["config"].get(k) == now[k] for k in RESTART_KEYS) and saved.get("recording") == recording_digest(rec)
+        default = config_dict(CalibrationConfig())
+        if (all(saved["config"].get(k, default[k]) == now[k] for k in RESTART_KEYS) and saved.get("recording") == recording_digest(rec)
                 and torch.equal(saved["result"]["Q"][0], Q0)):
             if fc.load_state(saved["forecaster"]):
                 result = FilterResult.from_dict(saved["result"])
@@ -402,12 +569,15 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, r
     after the forward ensemble, when the cores its worker processes used are free; its batched
     element kernels use them (measured: a 20-member reduced re-solve at resolution 1 took 16.6 s on
     1 thread, 9.9 s on 2)."""
-    from .assimilation import SweepMap, data_fit, grid_posterior, hierarchical_filter
+    from .assimilation import hierarchical_filter
     from .forward import run_forward
 
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     fwd_cfg = forward_config(config)
+    pset = parameter_set(fwd_cfg)
+    if pset.d > 6:
+        raise ValueError(f"{pset.d} uncertain parameters ({pset.names}): calibrate at most 6 at once")
     # the recording first: a bad file is refused before any FE work on the forward ensemble
     rec, clean, truth = _load_recording(config, run_dir, progress)
     load_factors(rec, fwd_cfg.pressure)
@@ -423,16 +593,18 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, r
     Y_fe = forecast_at_frames(fwd["Y_steps"][ok], fwd["load_factors"], lam, W)  # (N, K, P, 2)
     N, K, P, _ = Y_fe.shape
     Yt = torch.as_tensor(Y_fe.reshape(N, K, -1))
-    Q0 = torch.log(fwd["params"]["C10"][torch.as_tensor(ok)])[:, None]
+    # the members' coordinates (log C10 for the paper's prior); all of them for the restart filter
+    Q0_all = (torch.log(fwd["params"]["C10"])[:, None] if not fwd_cfg.parameters
+              else pset.coordinates({n: fwd["params"][n] for n in pset.names}))
+    Q0 = Q0_all[torch.as_tensor(ok)]
     Z = torch.as_tensor(rec.Z.reshape(K, -1))
     r = torch.full((Z.shape[1],), config.noise ** 2, dtype=torch.float64)
     row = rec_op.nearest_point(0.0, 40.0)
     tracked = [2 * row, 2 * row + 1]
-    mu, sigma = lognormal_parameters(fwd_cfg.c10_mean, fwd_cfg.c10_std)
 
     out: dict = {"config": config, "forward": fwd, "recording": rec, "clean": clean, "truth": truth,
-                 "Y_fe": Y_fe, "Q0": Q0, "tracked_row": row, "tracked_point": rec_op.points[row].tolist(),
-                 "filters": {}}
+                 "Y_fe": Y_fe, "Q0": Q0, "Q0_all": Q0_all, "parameter_set": pset, "tracked_row": row,
+                 "tracked_point": rec_op.points[row].tolist(), "filters": {}}
     for name, slave in (("hierarchical", "linear"), ("hierarchical_nonlinear", "polynomial")):
         res, s = hierarchical_filter(Q0, Yt, Z, r, torch.Generator().manual_seed(config.filter_seed),
                                      slave=slave, degree=config.degree, tracked=tracked)
@@ -440,16 +612,16 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, r
         if slave == "polynomial":
             out["slave_degree"], out["slave_loo_rms_mm"] = s.degree, s.loo_rms
     t0 = time.perf_counter()
-    sweep = SweepMap(Q0[:, 0].numpy(), Y_fe.reshape(N, K, -1))
-    exact = grid_posterior(sweep, rec.Z.reshape(K, -1), config.noise ** 2, mu, sigma, config.grid)
+    ref = ExactReference(pset, Q0, Y_fe.reshape(N, K, -1), config.grid)
+    exact = ref.posterior(rec.Z.reshape(K, -1), config.noise ** 2)
     out["filters"]["exact"] = {"posterior": exact, "frames": np.arange(K), "wall_s": time.perf_counter() - t0}
-    out["data_fit"] = data_fit(exact, sweep, rec.Z.reshape(K, -1), config.noise ** 2)
-    out["sweep_loo_error"] = sweep.leave_one_out_error()
-    out["sweep"] = sweep
+    out["data_fit"] = ref.data_fit(exact, rec.Z.reshape(K, -1), config.noise ** 2)
+    out["sweep_loo_error"] = ref.loo_error
+    out["sweep_loo_error_rms"] = ref.loo_error_rms
+    out["sweep"] = ref
     if config.restart:
         # The restart filter solves FE from the unloaded state itself, so its prior is every draw,
         # including forward members that did not converge (the forward's path, not the draw, failed).
-        Q0_all = torch.log(fwd["params"]["C10"])[:, None]
         threads = torch.get_num_threads()
         out["restart_threads"] = restart_threads or threads
         torch.set_num_threads(out["restart_threads"])
@@ -459,86 +631,102 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, r
         finally:
             torch.set_num_threads(threads)
         out["filters"]["restart"] = {"result": res, "frames": idx}
-        out["exact_restart_frames"] = grid_posterior(sweep, rec.Z.reshape(K, -1), config.noise ** 2, mu, sigma,
-                                                     config.grid, frames=idx)
-        out["restart_spline_check"] = restart_spline_check(config, res, idx, sweep, Q0_all, Z, r, tracked)
-    # How far each hierarchical slave's forecast is from the FE map (spline through the FE sweep) at
-    # the ensemble it forecast for: the slave's linearization error along the way.
+        out["exact_restart_frames"] = ref.posterior(rec.Z.reshape(K, -1), config.noise ** 2, frames=idx)
+        out["restart_spline_check"] = restart_spline_check(config, res, idx, ref, Q0_all, Z, r, tracked)
+    # How far each hierarchical slave's forecast is from the FE map (the exact reference's map through
+    # the FE members) at the ensemble it forecast for: the slave's linearization error along the way.
     for name in ("hierarchical", "hierarchical_nonlinear"):
         res = out["filters"][name]["result"]
         err = []
         for k in range(K):
-            fe = sweep(res.Q[k][:, 0].numpy())[:, k, :][:, tracked]  # (N, 2)
+            fe = ref.predict(res.Q[k].numpy())[:, k, :][:, tracked]  # (N, 2)
             err.append(np.sqrt(((res.Y_tracked[k].numpy() - fe) ** 2).mean(0)))
         out["filters"][name]["slave_error_tracked"] = np.asarray(err)  # (K, 2) RMS over members, mm
     out["direct_fe_check"] = _direct_fe_check(config, run_dir, out, rec, lam, tracked, row)
     if clean is not None and config.coverage_seeds > 0:
-        restart = (torch.log(fwd["params"]["C10"])[:, None], out["filters"]["restart"]["frames"]) if config.restart else None
-        out["coverage"] = coverage_study(config, Q0, Yt, sweep, clean.reshape(K, -1), truth, mu, sigma,
-                                         out["slave_degree"], restart)
+        restart = (Q0_all, out["filters"]["restart"]["frames"]) if config.restart else None
+        out["coverage"] = coverage_study(config, Q0, Yt, ref, clean.reshape(K, -1), truth, out["slave_degree"], restart)
     return out
 
 
 def _direct_fe_check(config, run_dir: Path, out: dict, rec: Recording, lam, tracked, row) -> dict:
-    """One FE solve at each hierarchical filter's final posterior mean of C10, observed at the last
-    frame, against that filter's forecast (its slave's map at the same C10) and the spline through
-    the FE sweep: checks both maps directly, not only through the sweep. Cached in the run folder."""
+    """One FE solve at each hierarchical filter's final posterior mean (of the coordinates), observed
+    at the last frame, against that filter's forecast (its slave's map at the same point) and the
+    exact reference's map through the FE members: checks both maps directly, not only through the
+    members. Cached in the run folder."""
     names = ("hierarchical", "hierarchical_nonlinear")
     k_top = int(np.argmax(lam))  # the frame of highest pressure (a cycled trace ends unloaded)
-    q = np.array([float(out["filters"][n]["result"].Q[-1][:, 0].mean()) for n in names])
+    pset = out["parameter_set"]
+    q = np.stack([out["filters"][n]["result"].Q[-1].mean(0).numpy() for n in names])  # (2, d)
+    if pset.d == 1:
+        q = q[:, 0]  # the one-parameter record keeps its shape
     path = run_dir / "direct_fe_check.npz"
     saved = dict(np.load(path, allow_pickle=False)) if path.exists() else None
-    if saved is not None and np.allclose(saved["q"], q, rtol=0, atol=1e-12) and int(saved["k"]) == k_top:
+    if (saved is not None and saved["q"].shape == q.shape and np.allclose(saved["q"], q, rtol=0, atol=1e-12)
+            and int(saved["k"]) == k_top):
         fe = saved["fe"]
     else:
         solver = ActuatorSolver(config.resolution, rec, forward_config(config))
-        sol = fem.solve(solver.model, solver.params(np.exp(q)), [float(lam[k_top])], solver.options())
+        Qm = torch.as_tensor(q.reshape(len(names), -1))
+        sol = fem.solve(solver.model, solver.params_q(Qm), [float(lam[k_top])], solver.options())
         if not sol.converged.all():
-            return {"skipped": f"the direct FE solve did not converge (C10 = {np.exp(q).tolist()})"}
+            return {"skipped": f"the direct FE solve did not converge ({ {n: v.tolist() for n, v in pset.natural(Qm).items()} })"}
         fe = solver.operator(sol.u[:, -1, : solver.mesh.n_nodes]).numpy()[:, row]  # (2, 2)
         np.savez(path, q=q, fe=fe, k=k_top)
     res = {}
+    Yfe = torch.as_tensor(out["Y_fe"].reshape(*out["Y_fe"].shape[:2], -1))
     for j, n in enumerate(names):
-        Qm = torch.full((1, 1), q[j], dtype=torch.float64)
+        Qm = torch.as_tensor(np.asarray(q[j], dtype=np.float64).reshape(1, -1))
         # the slave's map at q without any member's own residual: the affine least-squares fit of
         # Eq. 23 (= degree 1, R_q = 0) or the polynomial of the nonlinear slave
-        Yfe = torch.as_tensor(out["Y_fe"].reshape(*out["Y_fe"].shape[:2], -1))
         slave = PolynomialSlave(out["Q0"], Yfe, 1 if n == "hierarchical" else out["slave_degree"])
         pred = slave.map(Qm, k_top)[0, tracked].numpy()
-        spline = out["sweep"](np.array([q[j]]))[0, k_top, tracked]
-        res[n] = {"C10": float(np.exp(q[j])), "fe_tracked_mm": fe[j].tolist(), "slave_map_tracked_mm": pred.tolist(),
+        spline = out["sweep"].predict(Qm.numpy())[0, k_top, tracked]
+        at = {p: float(v[0]) for p, v in pset.natural(Qm).items()} if pset.d > 1 else {"C10": float(np.exp(q[j]))}
+        res[n] = {**at, "fe_tracked_mm": fe[j].tolist(), "slave_map_tracked_mm": pred.tolist(),
                   "spline_tracked_mm": spline.tolist(), "slave_minus_fe_mm": (pred - fe[j]).tolist(),
                   "spline_minus_fe_mm": (spline - fe[j]).tolist(), "frame": int(rec.frames[k_top])}
     return res
 
 
-def restart_spline_check(config, res, idx, sweep, Q0, Z, r, tracked) -> dict:
-    """How well the spline through the FE sweep stands in for the restart filter's FE solves: its
-    prediction at every ensemble the FE restart filter forecast for (the tracked entries, all
-    members, all steps) against the FE forecasts, and the same filter (same prior, same generator
-    seed) rerun with the spline in place of the FE solves against the FE run's posterior."""
+def restart_spline_check(config, res, idx, ref: ExactReference, Q0, Z, r, tracked) -> dict:
+    """How well the exact reference's map through the FE members (the spline of a one-parameter
+    sweep) stands in for the restart filter's FE solves: its prediction at every ensemble the FE
+    restart filter forecast for (the tracked entries, all members, all steps) against the FE
+    forecasts, and the same filter (same prior, same generator seed) rerun with the map in place of
+    the FE solves against the FE run's posterior (per parameter)."""
     from .assimilation import sequential_filter
 
-    err = max(float(np.abs(sweep(res.Q[k][:, 0].numpy())[:, idx[k]][:, tracked] - res.Y_tracked[k].numpy()).max())
+    pset = ref.pset
+    err = max(float(np.abs(ref.predict(res.Q[k].numpy())[:, idx[k]][:, tracked] - res.Y_tracked[k].numpy()).max())
               for k in range(res.steps))
-    twin = sequential_filter(Q0, sweep.forecaster(idx), Z[idx], r, torch.Generator().manual_seed(config.filter_seed + 100))
-    fe, spl = _stats(torch.exp(res.Q[-1])), _stats(torch.exp(twin.Q[-1]))
-    return {"max_forecast_error_tracked_mm": err, "steps": res.steps,
-            "spline_restart_C10": spl, "fe_restart_C10": fe,
-            "mean_difference_in_fe_stds": (spl["mean"] - fe["mean"]) / fe["std"],
-            "std_ratio": spl["std"] / fe["std"],
-            "log_evidence_difference": twin.log_evidence - res.log_evidence}
+    twin = sequential_filter(Q0, ref.forecaster(idx), Z[idx], r, torch.Generator().manual_seed(config.filter_seed + 100))
+    fe, spl = ensemble_stats(pset, res.Q[-1]), ensemble_stats(pset, twin.Q[-1])
+    out = {"max_forecast_error_tracked_mm": err, "steps": res.steps,
+           "log_evidence_difference": twin.log_evidence - res.log_evidence, "by_parameter": {}}
+    for n in pset.names:
+        out["by_parameter"][n] = {"spline_restart": spl[n], "fe_restart": fe[n],
+                                  "mean_difference_in_fe_stds": (spl[n]["mean"] - fe[n]["mean"]) / fe[n]["std"],
+                                  "std_ratio": spl[n]["std"] / fe[n]["std"]}
+    if pset.d == 1:  # the one-parameter record keeps its keys
+        n = pset.names[0]
+        b = out["by_parameter"][n]
+        out.update({f"spline_restart_{n}": b["spline_restart"], f"fe_restart_{n}": b["fe_restart"],
+                    "mean_difference_in_fe_stds": b["mean_difference_in_fe_stds"], "std_ratio": b["std_ratio"]})
+    return out
 
 
-def coverage_study(config, Q0, Yt, sweep, clean, truth, mu, sigma, out_degree, restart=None) -> dict:
-    """Re-draw the recording's noise ``coverage_seeds`` times (no FE solve) and count how often each
-    filter's 10-90 % interval holds the truth (expected 80 %; binomial std 9 % at 20 seeds).
+def coverage_study(config, Q0, Yt, ref: ExactReference, clean, truth: dict, out_degree, restart=None) -> dict:
+    """Re-draw the recording's noise ``coverage_seeds`` times (no FE solve) and count, per parameter,
+    how often each filter's 10-90 % interval holds the truth (expected 80 %; binomial std 9 % at 20
+    seeds).
 
     ``restart = (Q0_all, frames)`` adds the restart filter on those frames, its FE solves replaced by
-    the spline through the FE sweep (checked against the FE restart run by
-    :func:`restart_spline_check`), and the exact posterior on the same frames."""
-    from .assimilation import grid_posterior, hierarchical_filter, sequential_filter
+    the exact reference's map (checked against the FE restart run by :func:`restart_spline_check`),
+    and the exact posterior on the same frames."""
+    from .assimilation import hierarchical_filter, sequential_filter
 
+    pset = ref.pset
     r = torch.full((clean.shape[1],), config.noise ** 2, dtype=torch.float64)
     names = ["hierarchical", "hierarchical_nonlinear", "exact"]
     if restart is not None:
@@ -551,19 +739,22 @@ def coverage_study(config, Q0, Yt, sweep, clean, truth, mu, sigma, out_degree, r
         for name, slave in (("hierarchical", "linear"), ("hierarchical_nonlinear", "polynomial")):
             res, _ = hierarchical_filter(Q0, Yt, Zt, r, torch.Generator().manual_seed(config.filter_seed + s),
                                          slave=slave, degree=out_degree)
-            rows[name].append(_stats(torch.exp(res.Q[-1])))
-        rows["exact"].append(grid_posterior(sweep, Zs, config.noise ** 2, mu, sigma, config.grid).stats())
+            rows[name].append(ensemble_stats(pset, res.Q[-1]))
+        rows["exact"].append(ref.posterior(Zs, config.noise ** 2).stats())
         if restart is not None:
             Q0_all, idx = restart
-            res = sequential_filter(Q0_all, sweep.forecaster(idx), Zt[idx], r,
+            res = sequential_filter(Q0_all, ref.forecaster(idx), Zt[idx], r,
                                     torch.Generator().manual_seed(config.filter_seed + 100 + s))
-            rows["restart"].append(_stats(torch.exp(res.Q[-1])))
-            rows["exact_restart_frames"].append(
-                grid_posterior(sweep, Zs, config.noise ** 2, mu, sigma, config.grid, frames=idx).stats())
+            rows["restart"].append(ensemble_stats(pset, res.Q[-1]))
+            rows["exact_restart_frames"].append(ref.posterior(Zs, config.noise ** 2, frames=idx).stats())
     out = {}
     for name, st in rows.items():
-        inside = [s["p10"] <= truth <= s["p90"] for s in st]
-        out[name] = {"coverage_80": float(np.mean(inside)), "seeds": len(st), "inside": inside,
-                     "mean_of_means": float(np.mean([s["mean"] for s in st])),
-                     "mean_std": float(np.mean([s["std"] for s in st]))}
+        per = {}
+        for p in pset.names:
+            inside = [x[p]["p10"] <= truth[p] <= x[p]["p90"] for x in st]
+            per[p] = {"coverage_80": float(np.mean(inside)), "seeds": len(st), "inside": inside,
+                      "mean_of_means": float(np.mean([x[p]["mean"] for x in st])),
+                      "mean_std": float(np.mean([x[p]["std"] for x in st]))}
+        # one parameter: its entries at the top (the record's keys); several: one entry per parameter
+        out[name] = per[pset.names[0]] if pset.d == 1 else {"seeds": len(st), **per}
     return out

@@ -11,7 +11,6 @@ K/mu = ``bulk_ratio`` (D1 = 1 / (bulk_ratio C10)), so every member is equally in
 from __future__ import annotations
 
 import json
-import math
 import os
 import socket
 import sys
@@ -23,7 +22,6 @@ import numpy as np
 import torch
 
 from . import fem
-from .geometry.actuator import ActuatorGeometry, build_actuator_model  # noqa: F401 (re-exported)
 from .observe import ObservationOperator, frame_times, interpolate_in_time, visible_faces
 from .priors import ParameterSet, lognormal_parameters, paper_prior
 
@@ -57,6 +55,8 @@ class ForwardConfig:
     snapshots: int = 0  # members solved in full for the basis (0: 1 + 2 x varying parameters, at least 3)
     reduced_tol: float = 5e-4  # mm: a reduced member whose check estimates more is solved in full
     reduced_batch: int = 4  # reduced members per batched solve
+    newton_budget: int = 500  # Newton iterations one member may spend (a full-Newton member took 80-230
+    # at resolution 1, the hopeless one included); a member that spends them stops, flagged
     # any parameter set (torchfra.priors): prior specs "NAME=KIND:A,B" and fixed "NAME=VALUE"; empty:
     # the paper's prior, C10 lognormal (c10_mean, c10_std) with E_fiber fixed
     parameters: list = field(default_factory=list)
@@ -232,13 +232,16 @@ def _save_solution(path: Path, Y, u_last, sol, wall: float, **extra) -> None:
                timings={**sol.timings, "wall": wall}, **extra)
 
 
-def _reduced_model(run_dir: Path, model, snap_records: list[dict], params, snap, load, quiet: bool):
+def _reduced_model(run_dir: Path, model, snap_records: list[dict], params, snap, load, quiet: bool,
+                   rebuild: bool = False):
     """The hyper-reduced model of the run: read from ``reduced_model.npz`` if a worker built it,
-    else built from the snapshot members' states and saved (arrays only, never unpickled)."""
+    else built from the full-Newton members' states (``snap_records`` of members ``snap``) and saved
+    (arrays only, never unpickled). ``rebuild``: build it again from these members (the basis
+    enriched by members whose reduced solve failed its check) and replace the file."""
     from .fem.reduced import HyperReducedModel, build_reduced
 
     path = run_dir / "reduced_model.npz"
-    if path.exists():
+    if path.exists() and not rebuild:
         try:
             with np.load(path, allow_pickle=False) as f:
                 hyper = HyperReducedModel.from_arrays(model, {k: f[k] for k in f.files})
@@ -255,7 +258,7 @@ def _reduced_model(run_dir: Path, model, snap_records: list[dict], params, snap,
         return None
     idx = torch.as_tensor(np.asarray(snap)[reached])
     hyper = build_reduced(model, states[reached], {k: v[idx] for k, v in params.items()}, load)
-    tmp = path.with_suffix(".tmp.npz")
+    tmp = path.with_name(f"reduced_model.{os.getpid()}.tmp.npz")  # several workers may rebuild at once
     np.savez(tmp, **hyper.arrays())
     tmp.replace(path)
     return hyper
@@ -329,7 +332,8 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
     def solve_full(start, stop, **extra):
         chunk_params = {k: v[start:stop] for k, v in params.items()}
         t_chunk = time.perf_counter()
-        sol = fem.solve(model, chunk_params, load, fem.NewtonOptions(**config.newton))
+        sol = fem.solve(model, chunk_params, load, fem.NewtonOptions(**{"member_budget": config.newton_budget,
+                                                                       **config.newton}))
         u = sol.u[:, :, : mesh.n_nodes]
         states = {"states": sol.a.numpy()} if config.method == "reduced" else {}
         _save_solution(path_of[start], operator(u).numpy(), sol.u[:, -1].numpy(), sol,
@@ -390,6 +394,7 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
                 share_file(run_dir / "reduced_model.npz", r, 0)
                 if r.rank != 0:
                     hyper = _reduced_model(run_dir, model, snap_records, params, snap, load, quiet=True)
+        basis_members, basis_records = list(snap), list(snap_records)
         open_bar([(m, m + 1) for m in rest], "reduced members")
         queue = r.share(left) if r.parallel else rest
         i = 0
@@ -424,6 +429,21 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
             for m in redo:  # the reduced answer failed its check: Newton on the full model
                 solve_full(m, m + 1, error_estimate=np.asarray(
                     [np.nan if hyper is None else rs.error_estimate[batch.index(m)]]))
+            if hyper is not None and redo and any(not path_of[m].exists() for m in queue[i:]):
+                # greedy enrichment: the members the basis failed join it, and the basis is built again
+                # (a prior over several parameters needs more snapshots than the first few; each
+                # failure shows where)
+                for m in redo:
+                    rec = load_chunk(path_of[m])
+                    if "states" in rec:
+                        basis_members.append(m)
+                        basis_records.append(rec)
+                order = np.argsort(basis_members)
+                if progress:
+                    bar.write(f"forward ensemble: {len(redo)} member(s) failed the reduced check; the basis now "
+                              f"holds {len(basis_members)} full solves, rebuilding it")
+                hyper = _reduced_model(run_dir, model, [basis_records[j] for j in order], params,
+                                       [basis_members[j] for j in order], load, quiet=True, rebuild=True)
             for m in batch:
                 path_of[m].with_suffix(".lock").unlink(missing_ok=r.parallel)
             tick()

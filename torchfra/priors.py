@@ -175,9 +175,9 @@ def parse_prior(text: str) -> Prior:
     return prior
 
 
-def parse_fixed(text: str) -> tuple[str, float]:
+def parse_fixed(text: str, flag: str = "--fixed") -> tuple[str, float]:
     """``NAME=VALUE`` -> (name, value), checked against the admissible range."""
-    where = f"--fixed {text!r}"
+    where = f"{flag} {text!r}"
     if "=" not in text:
         raise PriorError(f"{where}: write NAME=VALUE, e.g. E_fiber=31000")
     name, value = (s.strip() for s in text.split("=", 1))
@@ -216,32 +216,9 @@ class ParameterSet:
 
     @classmethod
     def from_file(cls, path) -> "ParameterSet":
-        """A TOML file with a ``[parameters]`` table of prior strings and an optional ``[fixed]`` table::
-
-            [parameters]
-            C10 = "lognormal:0.0062,0.0011"
-            E_fiber = "lognormal:31000,6000"
-            [fixed]
-            C01 = 0.0
-        """
-        import tomllib
-
-        path = Path(path)
-        try:
-            data = tomllib.loads(path.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError) as exc:
-            raise PriorError(f"{path}: cannot read it ({exc})") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise PriorError(f"{path}: not valid TOML ({exc})") from None
-        unknown = sorted(set(data) - {"parameters", "fixed"})
-        if unknown:
-            raise PriorError(f"{path}: unknown tables {unknown}; a parameter file has [parameters] and [fixed]")
-        priors = [f"{k}={v}" for k, v in data.get("parameters", {}).items()]
-        fixed = [f"{k}={v}" for k, v in data.get("fixed", {}).items()]
-        try:
-            return cls.parse(priors, fixed)
-        except PriorError as exc:
-            raise PriorError(f"{path}: {exc}") from None
+        """The parameter set of a TOML file (see :func:`read_parameter_file`)."""
+        f = read_parameter_file(path)
+        return cls.parse(f["parameters"], f["fixed"])
 
     # -- names and coordinates -----------------------------------------------------------------------
     @property
@@ -345,6 +322,61 @@ class ParameterSet:
     def describe(self) -> str:
         fixed = "; fixed: " + ", ".join(f"{n} = {v:g}" for n, v in self.fixed) if self.fixed else ""
         return "; ".join(p.describe() for p in self.priors) + fixed
+
+
+def read_parameter_file(path) -> dict:
+    """A TOML file with a ``[parameters]`` table of prior strings, and optional ``[fixed]`` values and
+    ``[truth]`` values (of a synthetic recording)::
+
+        [parameters]
+        C10 = "lognormal:0.0062,0.0011"
+        E_fiber = "lognormal:31000,6000"
+        [fixed]
+        C01 = 0.0
+        [truth]
+        C10 = 0.0048
+        E_fiber = 25000
+
+    Returns {"parameters": [specs], "fixed": [specs], "truth": {name: value}}, every entry checked."""
+    import tomllib
+
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise PriorError(f"{path}: cannot read it ({exc})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise PriorError(f"{path}: not valid TOML ({exc})") from None
+    unknown = sorted(set(data) - {"parameters", "fixed", "truth"})
+    if unknown:
+        raise PriorError(f"{path}: unknown tables {unknown}; a parameter file has [parameters], [fixed] and [truth]")
+    if not isinstance(data.get("parameters"), dict) or not data["parameters"]:
+        raise PriorError(f"{path}: no [parameters] table with priors, e.g. C10 = \"lognormal:0.0062,0.0011\"")
+    out = {"parameters": [f"{k}={v}" for k, v in data["parameters"].items()],
+           "fixed": [f"{k}={v}" for k, v in data.get("fixed", {}).items()], "truth": {}}
+    try:
+        pset = ParameterSet.parse(out["parameters"], out["fixed"])
+        for k, v in data.get("truth", {}).items():
+            if not isinstance(v, (int, float)) or isinstance(v, bool):
+                raise PriorError(f"[truth] {k} = {v!r} is not a number")
+            out["truth"][k] = float(v)
+        if out["truth"]:
+            pset.values(out["truth"], where="[truth]")
+    except PriorError as exc:
+        raise PriorError(f"{path}: {exc}") from None
+    return out
+
+
+def parse_truth(items) -> dict[str, float]:
+    """``--truth`` values: ``NAME=VALUE`` each, or a bare number for C10."""
+    out = {}
+    for text in items or ():
+        name, value = text.split("=", 1) if "=" in text else ("C10", text)
+        name = name.strip()
+        if name in out:
+            raise PriorError(f"--truth {text!r}: {name} is given twice")
+        out[name] = _number(value.strip(), f"--truth {text!r}")
+    return out
 
 
 def paper_prior(mean: float, std: float, E_fiber: float = 31000.0) -> ParameterSet:

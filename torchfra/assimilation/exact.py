@@ -84,10 +84,11 @@ class GridPosterior:
     log_evidence: np.ndarray
     prior_mass_outside: float
 
-    def stats(self, step: int = -1) -> dict[str, float]:
-        """Mean, std, p10, p90 of the physical parameter exp(q) after ``step`` frames (-1: all)."""
+    def stats(self, step: int = -1, natural=np.exp) -> dict[str, float]:
+        """Mean, std, p10, p90 of the physical parameter ``natural(q)`` (default exp(q)) after ``step``
+        frames (-1: all)."""
         p = np.exp(self.log_post[step])
-        x = np.exp(self.q)
+        x = np.asarray(natural(self.q))
         w = _trapezoid_weights(self.q) * p
         w = w / w.sum()
         mean = float(w @ x)
@@ -104,10 +105,11 @@ class GridPosterior:
         w = _trapezoid_weights(self.q) * np.exp(self.log_post[step])
         return float((w[:cells].sum() + w[-cells:].sum()) / w.sum())
 
-    def density(self, step: int = -1) -> tuple[np.ndarray, np.ndarray]:
-        """(x, pdf of the physical parameter x = exp(q))."""
-        x = np.exp(self.q)
-        return x, np.exp(self.log_post[step]) / x
+    def density(self, step: int = -1, natural=np.exp) -> tuple[np.ndarray, np.ndarray]:
+        """(x, pdf of the physical parameter x = natural(q), default exp(q))."""
+        x = np.asarray(natural(self.q))
+        jac = x if natural is np.exp else np.abs(np.gradient(x, self.q))  # dx/dq
+        return x, np.exp(self.log_post[step]) / jac
 
 
 def _trapezoid_weights(q: np.ndarray) -> np.ndarray:
@@ -162,7 +164,7 @@ UNIT_HINTS = ((1e-3, "metres instead of mm?"), (1e-1, "cm instead of mm?"), (1e3
               (25.4, "inches instead of mm?"))  # recorded / model displacement ratio -> the likely unit mistake
 
 
-def data_fit(posterior: GridPosterior, sweep: SweepMap, Z, r) -> dict:
+def data_fit(posterior: GridPosterior, sweep: SweepMap, Z, r, natural=math.exp) -> dict:
     """Whether the recording fits the model and the prior at all, from the exact posterior: a posterior
     piled against an end of the sweep's range (``edge_mass`` above ``EDGE_MASS_LIMIT``: the data want
     a parameter outside the forward ensemble, e.g. a stiffer silicone or a unit mistake), or a residual
@@ -188,11 +190,11 @@ def data_fit(posterior: GridPosterior, sweep: SweepMap, Z, r) -> dict:
         units = (f"the recorded displacements are {scale:.3g} times the model's at that end: {hint}" if hint else
                  "check the units of displacements and pressures")
         reasons.append(f"{edge:.0%} of the exact posterior lies at the {side} end of the forward ensemble's range "
-                       f"[{math.exp(lo):.4g}, {math.exp(hi):.4g}]: the recording wants a parameter outside the "
+                       f"[{natural(lo):.4g}, {natural(hi):.4g}]: the recording wants a parameter outside the "
                        f"prior ({units}; or widen the prior)")
     if rms > RESIDUAL_RMS_LIMIT:
-        reasons.append(f"at the best parameter ({math.exp(q_map):.4g}) the residual is {rms:.3g} times the noise: "
+        reasons.append(f"at the best parameter ({natural(q_map):.4g}) the residual is {rms:.3g} times the noise: "
                        "no parameter of the model reproduces the recording (check the noise level and units, or "
                        "look for missing physics with scripts/diagnose.py)")
-    return {"ok": not reasons, "edge_mass": edge, "residual_rms_in_noise_units": rms, "map": math.exp(q_map),
-            "range": [math.exp(lo), math.exp(hi)], "displacement_scale": scale, "reasons": reasons}
+    return {"ok": not reasons, "edge_mass": edge, "residual_rms_in_noise_units": rms, "map": float(natural(q_map)),
+            "range": [float(natural(lo)), float(natural(hi))], "displacement_scale": scale, "reasons": reasons}

@@ -55,13 +55,15 @@ class LinearSlave:
 
 def select_degree(Q0: torch.Tensor, Y_fe: torch.Tensor, max_degree: int = 8) -> tuple[int, dict[int, float]]:
     """The polynomial degree with the smallest leave-one-out RMS error of the map Q0 -> Y_fe, over
-    degree 1 and the higher degrees (up to max_degree) that leave at least 10 members per
-    coefficient. Leave-one-out residuals
-    of least squares come in closed form, e_i / (1 - h_ii) with h the hat matrix: no refits."""
+    degree 1 and the higher degrees (up to max_degree) whose coefficients number at most half the
+    members (the leave-one-out error, not a members-per-coefficient rule, guards against
+    over-fitting: with d = 2 parameters and 100 members a cubic has 10 coefficients and a quintic
+    21, and the map's curvature may need the quintic). Leave-one-out residuals of least squares come
+    in closed form, e_i / (1 - h_ii) with h the hat matrix: no refits."""
     N, d = Q0.shape
     loo: dict[int, float] = {}
     for p in range(1, max_degree + 1):
-        if p > 1 and 10 * len(_monomials(d, p)) > N:
+        if p > 1 and 2 * len(_monomials(d, p)) > N:
             break
         s = PolynomialSlave(Q0, Y_fe, p)
         Phi = s.features(Q0)

@@ -52,6 +52,8 @@ class NewtonOptions:
     # Newton steps legitimately raise ||r|| by orders of magnitude before converging quadratically)
     tangent_hint: float = 1e-5  # evaluate the tangent with the residual when the member's last relative
     # residual exceeds this (its next iterate will most likely need a step): one evaluation, not two
+    member_budget: int = 0  # Newton iterations one member may spend in all (0: no limit); a member
+    # that uses them up before the last load factor stops there, "diverged", and the others go on
 
 
 CONVERGED, DIVERGED = "converged", "diverged"
@@ -280,6 +282,8 @@ def solve(
                 lam[m] = min(lam_conv[m] + dlam[m], outs[nxt[m]])
                 it[m] = 0
                 x[m] = predictor(m)
+            elif opt.member_budget and iterations[m] >= opt.member_budget:
+                status[m], active[m] = DIVERGED, False  # its budget is spent: the load it reached stands
             elif not ok[j] or it[m] >= opt.max_iterations:
                 cut(m)
             else:

@@ -72,6 +72,8 @@ def write_forward_outputs(result: dict, config, run_dir: str | Path) -> dict:
         "tracked_displacement_mean": np.nanmean(Y_tr[converged, -1], axis=0).tolist(),
         "tracked_displacement_p10_p90": np.nanpercentile(Y_tr[converged, -1], [10, 90], axis=0).tolist(),
         "C10": {"mean": float(params["C10"].mean()), "std": float(params["C10"].std(ddof=1))},
+        "parameters": {k: {"mean": float(np.mean(v)), "std": float(np.std(v, ddof=1)) if len(v) > 1 else 0.0,
+                           "min": float(np.min(v)), "max": float(np.max(v))} for k, v in params.items()},
         "config": asdict(config),
     }
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=1))
@@ -84,7 +86,8 @@ def write_forward_outputs(result: dict, config, run_dir: str | Path) -> dict:
     log_figure(writer, "forward/tracked_node", fig, run_dir / "tracked_node.png")
     u_mean = result["u_last"][converged].mean(axis=0)
     log_mesh(writer, "forward/mean_deformed", mesh, u_mean)
-    log_hparams(writer, {k: v for k, v in asdict(config).items() if k != "newton"},
+    log_hparams(writer, {k: (" ".join(v) if isinstance(v, list) else v) for k, v in asdict(config).items()
+                         if k != "newton"},
                 {"summary/members_converged": summary["members_converged"], "summary/wall_s": summary["wall_s"]})
     writer.close()
 
