@@ -314,10 +314,22 @@ def pairs_figure(out: dict) -> Figure:
         if out["truth"] is not None:
             ax.plot(out["truth"][pset.names[i]], out["truth"][pset.names[j]], "x", color="k", ms=10, mew=2,
                     label="truth")
-        ax.set(xlabel=f"{pset.names[i]} ({pset.priors[i].unit})", ylabel=f"{pset.names[j]} ({pset.priors[j].unit})")
+        lims = []
+        for k in (i, j):  # the exact posterior's 0.05-99.95 % range and every filter's members
+            order = np.argsort(X[:, k])
+            cdf = np.cumsum(w[order])
+            lo, hi = np.interp([0.0005, 0.9995], cdf, X[order, k])
+            for name, f in out["filters"].items():
+                if name != "exact":
+                    v = _members(pset, f["result"].Q[-1], k)
+                    lo, hi = min(lo, v.min()), max(hi, v.max())
+            pad = 0.05 * (hi - lo)
+            lims.append((lo - pad, hi + pad))
+        ax.set(xlim=lims[0], ylim=lims[1], xlabel=f"{pset.names[i]} ({pset.priors[i].unit})",
+               ylabel=f"{pset.names[j]} ({pset.priors[j].unit})")
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize="x-small")
-    fig.suptitle("posterior of every pair of parameters: exact regions and the filters' final ensembles")
+    fig.suptitle("exact posterior regions and the filters' final ensembles", fontsize="medium")
     return fig
 
 
