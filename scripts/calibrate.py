@@ -165,6 +165,13 @@ def main(argv=None) -> dict:
               + f"\n(the filters' outputs are in {run_dir} for inspection only)", file=sys.stderr)
         print(json.dumps({"result": None, "data_fit": fit, "run": str(run_dir)}, indent=1))
         return summary
+    for name, row in summary["filters"].items():  # frames the filter's forecasts do not explain
+        flags = row.get("innovation_flags", {}).get("frames", [])
+        if flags:
+            print(f"innovation check, {name}: {len(flags)} of {row['frames_assimilated']} frames outside the 99.99 % "
+                  f"band of the normalized innovation, the first at frame index {flags[0]} (summary.json innovation_flags): the "
+                  "filter's forecasts, with their spread and the noise, do not explain the recording there",
+                  file=sys.stderr)
     print(json.dumps({"filters": {k: {p: v[p] for p in summary["parameters"]} for k, v in summary["filters"].items()},
                       "truth": summary["truth"], "run": str(run_dir)}, indent=1))
     return summary

@@ -258,3 +258,26 @@ def test_data_that_do_not_fit_the_model_or_prior_are_flagged():
     shifted = check(0.006, shift=3 * noise * (-1.0) ** np.arange(m))
     assert not shifted["ok"] and shifted["residual_rms_in_noise_units"] > 2.5, shifted
     assert any("no parameter of the model" in r for r in shifted["reasons"]), shifted
+
+
+def test_innovation_flags_name_the_frames_the_model_stops_following():
+    """Affine model, 60 frames of 200 entries, restart-style forecasts from the true map: with data
+    made by the model no frame is flagged at alpha = 1e-4 (expected 0.006 false flags); a drift of
+    2 noise stds added to half the entries from frame 40 on (a physics the model lacks switching on)
+    is flagged from frame 40 on, and only there."""
+    from torchfra.assimilation import innovation_flags
+
+    g = torch.Generator().manual_seed(4)
+    K, m, N = 60, 200, 100
+    a, b = torch.randn(K, m, generator=g), torch.randn(K, m, generator=g)
+    r = torch.full((m,), 0.25)
+    Q0 = 0.3 + 0.4 * torch.randn(N, 1, generator=g)
+    Z = a + b * 0.1 + torch.randn(K, m, generator=g) * r.sqrt()
+    forecast = lambda Q, k: a[k] + b[k] * Q  # noqa: E731
+    clean = sequential_filter(Q0, forecast, Z, r, torch.Generator().manual_seed(5))
+    assert innovation_flags(clean, range(K))["frames"] == []
+    drift = Z.clone()
+    drift[40:, : m // 2] += 2 * r.sqrt()[: m // 2]
+    res = sequential_filter(Q0, forecast, drift, r, torch.Generator().manual_seed(5))
+    flags = innovation_flags(res, range(K))
+    assert flags["first"] == 40 and set(flags["frames"]) == set(range(40, K))

@@ -2,7 +2,8 @@
 (paper Eqs. 21-23) with linear or polynomial slave, the restart filter and the exact grid posterior."""
 from .analysis import AnalysisInfo, analysis
 from .exact import GridPosterior, SweepMap, data_fit, grid_posterior
-from .filters import FilterResult, LinearSlave, PolynomialSlave, hierarchical_filter, sequential_filter, summarize
+from .filters import (FilterResult, LinearSlave, PolynomialSlave, hierarchical_filter, innovation_flags,
+                      sequential_filter, summarize)
 
 __all__ = ["AnalysisInfo", "analysis", "GridPosterior", "SweepMap", "grid_posterior", "FilterResult", "LinearSlave",
-           "PolynomialSlave", "hierarchical_filter", "sequential_filter", "summarize"]
+           "PolynomialSlave", "hierarchical_filter", "innovation_flags", "sequential_filter", "summarize"]

@@ -220,6 +220,27 @@ def hierarchical_filter(Q0, Y_fe, Z, r, generator, slave: str = "linear", degree
     return res, s
 
 
+def innovation_flags(result: FilterResult, frames, alpha: float = 1e-4) -> dict:
+    """Frames whose normalized innovation squared lies above its (1 - alpha) chi-square quantile with
+    as many degrees of freedom as observed entries: there the forecast, with its spread and the
+    noise, does not explain the recording (a model that stops fitting from some pressure on, a
+    jump in the data, a noise level set too low). With a right model each frame is flagged with
+    probability ~alpha. Returns {"alpha", "frames" (flagged frame indices), "first", "largest"
+    NIS over its expectation)}."""
+    from scipy.stats import chi2
+
+    frames = np.asarray(frames)
+    flagged, largest = [], 0.0
+    for info, k in zip(result.info, frames):
+        if info.m > 0:
+            limit = chi2.isf(alpha, info.m) / info.m
+            largest = max(largest, info.nis)
+            if info.nis > limit:
+                flagged.append(int(k))
+    return {"alpha": alpha, "frames": flagged, "first": flagged[0] if flagged else None,
+            "largest_nis_over_expectation": largest}
+
+
 def summarize(q: torch.Tensor) -> dict[str, float]:
     """Mean, std and 10/90 % quantiles of physical parameter samples (N,)."""
     q = np.asarray(q, dtype=np.float64)

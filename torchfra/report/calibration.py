@@ -26,6 +26,7 @@ def _pset(out: dict):
 def filter_summary(out: dict) -> dict:
     """Per filter: one entry per parameter (mean, std, p10, p90; natural units), ``correlation``
     between parameters when there are several, the FE cost and the log evidence."""
+    from ..assimilation import innovation_flags
     from ..calibration import ensemble_stats
 
     rows = {}
@@ -43,6 +44,7 @@ def filter_summary(out: dict) -> dict:
         row = {**ensemble_stats(pset, res.Q[-1]), "fe_solves": int(res.fe_solves),
                "newton_iterations": int(res.newton_iterations), "wall_s": float(res.wall_s),
                "log_evidence": res.log_evidence, "frames_assimilated": int(len(f["frames"]))}
+        row["innovation_flags"] = innovation_flags(res, f["frames"])
         if pset.d > 1:
             X = torch.stack(list(pset.natural(res.Q[-1]).values()), 1).numpy()
             row["correlation"] = np.corrcoef(X.T).tolist()
