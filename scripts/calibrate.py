@@ -102,6 +102,9 @@ def main(argv=None) -> dict:
     p.add_argument("--mesh", type=int, default=None, help="mesh resolution of the FE model")
     p.add_argument("--forward-pressure", type=float, default=None,
                    help="largest pressure of the forward ensemble (MPa; default the config's, 0.022)")
+    p.add_argument("--assimilate-every", type=int, default=None,
+                   help="the hierarchical filters assimilate every n-th frame (default 1, the paper's); fewer "
+                        "updates keep their spread along a weakly constrained direction of several parameters")
     p.add_argument("--no-restart", action="store_true", help="skip the restart filter (the FE-costly baseline)")
     p.add_argument("--restart-every", type=int, default=None, help="restart filter assimilates every n-th frame")
     p.add_argument("--coverage-seeds", type=int, default=None, help="noise re-draws for the coverage study")
@@ -130,7 +133,7 @@ def main(argv=None) -> dict:
     truth = {**prior.pop("truth", {}), **parse_truth(a.truth)}
     overrides = {"recording": a.recording, "truth_c10": truth.pop("C10", None), "noise": a.noise, "members": a.members,
                  "resolution": a.mesh, "pressure": a.forward_pressure, "restart_every": a.restart_every,
-                 "coverage_seeds": a.coverage_seeds}
+                 "coverage_seeds": a.coverage_seeds, "assimilate_every": a.assimilate_every}
     config: CalibrationConfig = replace(base, **prior, **{k: v for k, v in overrides.items() if v is not None})
     if truth and config.recording is None:
         config = replace(config, truth=truth)

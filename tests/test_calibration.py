@@ -104,10 +104,13 @@ def test_two_parameter_calibration_end_to_end(tmp_path):
     correlation, each against the exact 2-D posterior; the exact posterior holds the truth within 3 of
     its stds; at this pressure the strains are small, so the data fix C10 + C01 (the small-strain
     shear modulus / 2) far better than either: the exact correlation is below -0.9. The forward cache
-    is keyed by the parameter set (another prior gets another folder)."""
+    is keyed by the parameter set (another prior gets another folder). The hierarchical filters
+    assimilate every 3rd frame here (``assimilate_every``) and are compared with the exact posterior
+    on those frames."""
     config = CalibrationConfig(members=10, frames=6, pressure=0.004, load_steps=2, noise=0.02, restart_every=3,
                                coverage_seeds=2, grid=400, parameters=["C10=lognormal:0.0061765,0.001123",
-                                                                       "C01=uniform:0,0.003"], truth={"C01": 0.001})
+                                                                       "C01=uniform:0,0.003"], truth={"C01": 0.001},
+                               assimilate_every=3)
     run_dir = tmp_path / "two"
     out = run_calibration(config, run_dir, progress=False)
     summary = write_calibration_outputs(out, run_dir, 0.0)
@@ -124,6 +127,11 @@ def test_two_parameter_calibration_end_to_end(tmp_path):
         assert set(comp) >= {"C10", "C01", "correlation", "exact_correlation_same_frames"}
         assert np.isfinite(comp["C01"]["distance_from_exact_mean_in_exact_stds"])
     assert summary["filters"]["hierarchical"]["fe_solves"] == 0
+    assert summary["filters"]["hierarchical_nonlinear"]["frames_assimilated"] == 2  # frames 3 and 6
+    same = out["exact_hierarchical_frames"].stats()["C10"]
+    assert summary["comparison"]["hierarchical"]["C10"]["exact_same_frames"] == same
+    assert abs(out["exact_hierarchical_frames"].log_evidence - exact["log_evidence"]) > 100  # 2 frames' density, not 6
+    assert summary["coverage"]["exact_hierarchical_frames"]["C10"]["seeds"] == 2
     assert summary["filters"]["restart"]["fe_solves"] == 10 * 2
     assert set(summary["coverage"]["exact"]) >= {"seeds", "C10", "C01"}
     assert set(summary["restart_spline_check"]["by_parameter"]) == {"C10", "C01"}

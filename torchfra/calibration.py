@@ -59,6 +59,11 @@ class CalibrationConfig:
     parameters: list = field(default_factory=list)
     fixed: list = field(default_factory=list)
     truth: dict = field(default_factory=dict)
+    # the hierarchical filters assimilate every n-th frame (the last included); 1: every frame, the
+    # paper's. Fewer sequential updates keep the ensemble's spread along a weakly constrained
+    # direction (scripts/study_assimilation_stride.py); they are compared with the exact posterior
+    # on the same frames
+    assimilate_every: int = 1
 
 
 SEED = CalibrationConfig()  # --config seed: the paper's numerical experiment (§4.1)
@@ -605,10 +610,13 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, r
     out: dict = {"config": config, "forward": fwd, "recording": rec, "clean": clean, "truth": truth,
                  "Y_fe": Y_fe, "Q0": Q0, "Q0_all": Q0_all, "parameter_set": pset, "tracked_row": row,
                  "tracked_point": rec_op.points[row].tolist(), "filters": {}}
+    if not 1 <= config.assimilate_every <= K:
+        raise ValueError(f"assimilate_every must lie in [1, {K}] (the recording's frames), got {config.assimilate_every}")
+    hier = np.arange(config.assimilate_every - 1, K, config.assimilate_every)  # the hierarchical filters' frames
     for name, slave in (("hierarchical", "linear"), ("hierarchical_nonlinear", "polynomial")):
-        res, s = hierarchical_filter(Q0, Yt, Z, r, torch.Generator().manual_seed(config.filter_seed),
+        res, s = hierarchical_filter(Q0, Yt[:, hier], Z[hier], r, torch.Generator().manual_seed(config.filter_seed),
                                      slave=slave, degree=config.degree, tracked=tracked)
-        out["filters"][name] = {"result": res, "frames": np.arange(K)}
+        out["filters"][name] = {"result": res, "frames": hier}
         if slave == "polynomial":
             out["slave_degree"], out["slave_loo_rms_mm"] = s.degree, s.loo_rms
     t0 = time.perf_counter()
@@ -616,6 +624,8 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, r
     exact = ref.posterior(rec.Z.reshape(K, -1), config.noise ** 2)
     out["filters"]["exact"] = {"posterior": exact, "frames": np.arange(K), "wall_s": time.perf_counter() - t0}
     out["data_fit"] = ref.data_fit(exact, rec.Z.reshape(K, -1), config.noise ** 2)
+    if hier.size != K:
+        out["exact_hierarchical_frames"] = ref.posterior(rec.Z.reshape(K, -1), config.noise ** 2, frames=hier)
     out["sweep_loo_error"] = ref.loo_error
     out["sweep_loo_error_rms"] = ref.loo_error_rms
     out["sweep"] = ref
@@ -638,14 +648,15 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, r
     for name in ("hierarchical", "hierarchical_nonlinear"):
         res = out["filters"][name]["result"]
         err = []
-        for k in range(K):
-            fe = ref.predict(res.Q[k].numpy())[:, k, :][:, tracked]  # (N, 2)
-            err.append(np.sqrt(((res.Y_tracked[k].numpy() - fe) ** 2).mean(0)))
+        for j, k in enumerate(hier):
+            fe = ref.predict(res.Q[j].numpy())[:, k, :][:, tracked]  # (N, 2)
+            err.append(np.sqrt(((res.Y_tracked[j].numpy() - fe) ** 2).mean(0)))
         out["filters"][name]["slave_error_tracked"] = np.asarray(err)  # (K, 2) RMS over members, mm
     out["direct_fe_check"] = _direct_fe_check(config, run_dir, out, rec, lam, tracked, row)
     if clean is not None and config.coverage_seeds > 0:
         restart = (Q0_all, out["filters"]["restart"]["frames"]) if config.restart else None
-        out["coverage"] = coverage_study(config, Q0, Yt, ref, clean.reshape(K, -1), truth, out["slave_degree"], restart)
+        out["coverage"] = coverage_study(config, Q0, Yt, ref, clean.reshape(K, -1), truth, out["slave_degree"], restart,
+                                         hier)
     return out
 
 
@@ -716,19 +727,25 @@ def restart_spline_check(config, res, idx, ref: ExactReference, Q0, Z, r, tracke
     return out
 
 
-def coverage_study(config, Q0, Yt, ref: ExactReference, clean, truth: dict, out_degree, restart=None) -> dict:
+def coverage_study(config, Q0, Yt, ref: ExactReference, clean, truth: dict, out_degree, restart=None,
+                   hier=None) -> dict:
     """Re-draw the recording's noise ``coverage_seeds`` times (no FE solve) and count, per parameter,
     how often each filter's 10-90 % interval holds the truth (expected 80 %; binomial std 9 % at 20
     seeds).
 
     ``restart = (Q0_all, frames)`` adds the restart filter on those frames, its FE solves replaced by
     the exact reference's map (checked against the FE restart run by :func:`restart_spline_check`),
-    and the exact posterior on the same frames."""
+    and the exact posterior on the same frames. ``hier``: the hierarchical filters' frames (default
+    all; otherwise the exact posterior on those frames is added)."""
     from .assimilation import hierarchical_filter, sequential_filter
 
     pset = ref.pset
     r = torch.full((clean.shape[1],), config.noise ** 2, dtype=torch.float64)
     names = ["hierarchical", "hierarchical_nonlinear", "exact"]
+    K = clean.shape[0]
+    hier = np.arange(K) if hier is None else np.asarray(hier)
+    if hier.size != K:
+        names += ["exact_hierarchical_frames"]
     if restart is not None:
         names += ["restart", "exact_restart_frames"]
     rows = {k: [] for k in names}
@@ -737,10 +754,12 @@ def coverage_study(config, Q0, Yt, ref: ExactReference, clean, truth: dict, out_
         Zs = clean + config.noise * rng.standard_normal(clean.shape)
         Zt = torch.as_tensor(Zs)
         for name, slave in (("hierarchical", "linear"), ("hierarchical_nonlinear", "polynomial")):
-            res, _ = hierarchical_filter(Q0, Yt, Zt, r, torch.Generator().manual_seed(config.filter_seed + s),
+            res, _ = hierarchical_filter(Q0, Yt[:, hier], Zt[hier], r, torch.Generator().manual_seed(config.filter_seed + s),
                                          slave=slave, degree=out_degree)
             rows[name].append(ensemble_stats(pset, res.Q[-1]))
         rows["exact"].append(ref.posterior(Zs, config.noise ** 2).stats())
+        if hier.size != K:
+            rows["exact_hierarchical_frames"].append(ref.posterior(Zs, config.noise ** 2, frames=hier).stats())
         if restart is not None:
             Q0_all, idx = restart
             res = sequential_filter(Q0_all, ref.forecaster(idx), Zt[idx], r,

@@ -64,7 +64,9 @@ def comparisons(out: dict, rows: dict) -> dict:
     exact_all = out["filters"]["exact"]["posterior"]
     comp = {}
     for name, row in rows.items():
-        post = out["exact_restart_frames"] if name == "restart" else exact_all
+        post = (out["exact_restart_frames"] if name == "restart" else
+                out["exact_hierarchical_frames"] if name.startswith("hierarchical") and "exact_hierarchical_frames" in out
+                else exact_all)
         ref_all = post.stats()
         per = {}
         for p in pset.names:
