@@ -60,6 +60,11 @@ def main(argv=None) -> dict:
         print(f"mismatch: {'yes' if out['mismatch_detected']['detected'] else 'no'} (chi2 p = {g['p_value']:.3g}, "
               f"RMS {g['rms']:.3f} noise units); decision: {out['decision']}; RMS after {out['fit_after']['rms']:.3f}; "
               f"{out['cost']['solves']} FE solves, {out['cost']['seconds']:.0f} s -> {run_dir}")
+        h = out["hysteresis"]
+        if h.get("detected"):
+            print(f"hysteresis: loading and unloading differ at equal pressure (largest loop {h['largest_loop_mm']:.3g} mm "
+                  f"at point {h['worst_points'][0]['point']}): history-dependent physics the library cannot model ("
+                  + ", ".join(h["physics"]["possible_causes"]) + ")")
     return out
 
 

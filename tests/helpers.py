@@ -25,8 +25,10 @@ def assemble_dense(term, u, params, lam, n_dofs):
 
 
 def block_with_cavity(n=3, size=3.0):
-    """An n x n x n block (n odd) with its central element removed: face set 'cavity' closes it."""
-    full = box_mesh((size, size, size), (n, n, n))
+    """An n x n x n block (n odd) with its central element removed: face set 'cavity' closes it.
+    size: edge length, or (x, y, z) lengths."""
+    size = np.broadcast_to(np.asarray(size, dtype=np.float64), (3,))
+    full = box_mesh(tuple(float(v) for v in size), (n, n, n))
     centre = int(np.argmin(np.linalg.norm(full.nodes[full.elements].mean(1) - size / 2, axis=1)))
     keep = np.setdiff1d(np.arange(full.n_elements), [centre])
     hole_faces = {frozenset(full.elements[centre][f].tolist()) for f in HEX20_FACES}

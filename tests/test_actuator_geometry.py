@@ -63,7 +63,20 @@ def test_impossible_geometry_is_refused_before_meshing(change, culprit):
     with pytest.raises(GeometryError, match=culprit):
         geom.validate()
     with pytest.raises(GeometryError, match=culprit):
+        build_actuator_model(geom)  # validates before it meshes anything
+    try:
+        geom.validate(helices=False)
+        body_ok = True
+    except GeometryError:
+        body_ok = False
+    if body_ok:
+        # a body that can be meshed with helices that cannot: the helices are refused where they are made
         actuator_mesh(geom)
+        with pytest.raises(GeometryError, match=culprit):
+            fiber_mesh(geom)
+    else:
+        with pytest.raises(GeometryError, match=culprit):
+            actuator_mesh(geom)
 
 
 def test_helix_touching_the_outer_face_is_allowed():

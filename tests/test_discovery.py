@@ -96,13 +96,13 @@ def test_score_statistic_equals_the_fitted_drop_and_flags_confounding():
     shape = (K, P, 2)
     b = rng.standard_normal(shape)
     s1 = rng.standard_normal(shape)
-    names = ["C10", "C01", "density", "c_n", "c_t", "pressure_gain", "pressure_offset", "D1", "E_fiber"]
+    names = ["C10", "C01", "density", "c_n", "c_t", "pressure_gain", "pressure_offset", "D1", "E_fiber", "delta_y"]
     J = np.zeros(shape + (len(names),))
     J[..., 0] = b
     # sensitivities per prior std (a change of one prior std moves the observations by O(noise))
     J[..., names.index("density")] = s1 / COORDINATES["density"].prior_std
     J[..., names.index("pressure_gain")] = 3.0 * b + 1e-4 * rng.standard_normal(shape)  # confounded
-    for n in ("C01", "c_n", "c_t", "pressure_offset", "D1", "E_fiber"):
+    for n in ("C01", "c_n", "c_t", "pressure_offset", "D1", "E_fiber", "delta_y"):
         J[..., names.index(n)] = rng.standard_normal(shape) / COORDINATES[n].prior_std
     y = 0.3 * s1 + rng.standard_normal(shape)
     bf = b.ravel()
@@ -179,6 +179,8 @@ def test_diagnosis_names_a_pressure_offset_and_resumes_without_solving(offset_re
                    run_dir=tmp_path / "d", progress=False, load_steps=6, max_refits=1)
     assert out["mismatch_detected"]["detected"]
     assert out["decision"] == "pressure_sensor", (out["decision"], out["tried"])
+    assert out["missing_physics"] == {"kind": "candidate", "name": "pressure_sensor"}
+    assert not out["hysteresis"]["applicable"]  # a ramp: nothing to compare, the global test keeps its level
     sensor = next(r for r in out["ranking"] if r["name"] == "pressure_sensor")
     assert sensor["confounded_parameters"] == ["pressure_gain"]  # the gain is C10's twin (scaling law)
     ext = out["parameters"]["extended"]["pressure_offset"]

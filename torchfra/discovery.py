@@ -12,7 +12,12 @@ The diagnosis of a recording (DESIGN §1.4):
    against chi^2 with n - d degrees of freedom. Onset: per-frame chi^2 tests with
    Benjamini-Hochberg control; the onset is the first frame after which the significant frames
    are the majority. Space: per-point chi^2 tests (BH at ``alpha``) grouped into clusters of
-   neighbouring points.
+   neighbouring points. **Hysteresis** (model-free, :func:`hysteresis`): a recording that comes
+   back down from its largest pressure is tested for path independence, loading against unloading
+   at equal pressure; every candidate of the library is hyperelastic and quasi-static, so a loop
+   means history-dependent physics (viscoelasticity, a sensor lag, damage, friction, drift) and the
+   decision is ``"unexplained"`` with that class named, whatever a candidate explains besides.
+   The omnibus half of the level is then shared by the chi^2 total and the hysteresis test.
 3. **Rank without refitting.** For each candidate, the whitened sensitivities of the observations
    to its parameters at the calibrated point (candidates at their null values), projected off the
    span of the calibrated parameters' sensitivities; the Lagrange-multiplier (score) statistic
@@ -504,6 +509,122 @@ def _clusters(X: np.ndarray, sig: np.ndarray, rms: np.ndarray, ids: np.ndarray) 
     return sorted(out, key=lambda c: -c["points"] * c["rms_noise_units"] ** 2)
 
 
+# -- hysteresis: a model-free test of path independence ----------------------------------------------------
+
+HISTORY_DEPENDENT = ("viscoelasticity", "a time lag of the pressure sensor", "Mullins-type damage on first loading",
+                     "friction", "a drift of the camera or the specimen in time")
+
+
+def _pressure_direction(phys: ActuatorPhysics, z: dict[str, float]) -> np.ndarray | None:
+    """The model's dY/dlambda at every frame's load factor (K, P, 2), by linear interpolation between
+    its load steps; None if its solve failed."""
+    steps = phys.at_steps(z)
+    if steps is None:
+        return None
+    s, _, dYs = steps
+    zt = {k: torch.tensor([v], dtype=torch.float64) for k, v in z.items()}
+    lam = np.clip(phys.frame_loads(zt).numpy(), 0.0, 1.0)
+    i = np.clip(np.searchsorted(s, lam, side="right") - 1, 0, s.size - 2)
+    t = ((lam - s[i]) / (s[i + 1] - s[i]))[:, None, None]
+    return (1 - t) * dYs[i] + t * dYs[i + 1]
+
+
+def hysteresis(rec: Recording, white: Whitener, alpha: float, direction: np.ndarray | None = None) -> dict:
+    """Does the recording pass through the same state at the same pressure on loading and unloading?
+
+    Every term of the model library is hyperelastic and quasi-static, so its observations are a
+    function of the pressure alone: a recording that goes up and comes back down must show the same
+    displacements at the same pressure. The loading branch (the frames up to the largest pressure,
+    pressure rising) is interpolated at each unloading frame's pressure by a cubic spline (linear
+    below 4 frames), which is linear in the data: ``d_k = Z_k - sum_j W_kj Z_j``. Under path
+    independence ``d`` is noise only, with covariance ``(I + W W^T)`` in time times the spatial noise
+    covariance (frames independent), so after spatial whitening and temporal decorrelation
+
+    - omnibus: ``sum d^2`` is chi^2 with (unloading frames x observations per frame) dof;
+    - directional: the projections of each ``d_k`` on ``direction[k]`` ((K, P, 2) for every frame;
+      e.g. the calibrated model's
+      ``dY/dpressure`` there: what a lagging or creeping pressure response moves) are jointly
+      Gaussian with covariance ``(I + W W^T) o (cosines between the directions)``, chi^2 with one dof
+      per unloading frame. Any fixed direction keeps the test valid; the model's makes it powerful.
+
+    Each statistic takes half of ``alpha``. Points and components must be observed in every frame
+    compared (others are left out). Returns a dict with ``applicable`` (False with a ``reason`` when
+    the recording has no unloading frame within its loading range), ``detected``, both statistics,
+    their dof and p-values, the frames compared, the loop per unloading frame (z-scores of the
+    directional projections) and per point (RMS in noise units), and the largest loop in mm."""
+    p = np.asarray(rec.pressure, dtype=np.float64)
+    K = p.size
+    top = int(np.argmax(p))
+    start = top
+    while start > 0 and p[start - 1] < p[start]:
+        start -= 1
+    load = np.arange(start, top + 1)
+    after = np.arange(top + 1, K)
+    if load.size < 2 or after.size == 0:
+        return {"applicable": False, "detected": False,
+                "reason": "the recording does not come back down from its largest pressure (no unloading frames)"
+                if after.size == 0 else "fewer than 2 loading frames before the largest pressure"}
+    p_l = p[load]
+    unl = after[(p[after] >= p_l.min()) & (p[after] <= p_l.max())]
+    if unl.size == 0:
+        return {"applicable": False, "detected": False,
+                "reason": "no unloading frame lies within the pressures of the loading branch"}
+    if load.size >= 4:
+        from scipy.interpolate import CubicSpline
+
+        W = CubicSpline(p_l, np.eye(load.size))(p[unl])
+    else:
+        W = np.stack([np.interp(p[unl], p_l, e) for e in np.eye(load.size)], axis=1)
+    frames = np.concatenate([load, unl])
+    common = rec.mask[frames].all(axis=0)  # (P, 2)
+    if not common.any():
+        return {"applicable": False, "detected": False, "reason": "no point is observed in every frame compared"}
+    Z = np.where(common[None], rec.Z, 0.0)
+    D = Z[unl] - np.einsum("uj,jpc->upc", W, Z[load])  # (U, P, 2) mm
+    mask = np.broadcast_to(common, D.shape)
+    Dw = white(D, mask)
+    A = np.eye(unl.size) + W @ W.T
+    L = np.linalg.cholesky(A)
+    flat = np.nan_to_num(Dw.reshape(unl.size, -1))
+    n_obs = int(np.isfinite(Dw[0]).sum())
+    X = linalg.solve_triangular(L, flat, lower=True)
+    T1 = float(np.sum(X**2))
+    dof1 = unl.size * n_obs
+    out = {"applicable": True, "frames_loading": [int(rec.frames[k]) for k in load],
+           "frames_unloading": [int(rec.frames[k]) for k in unl], "alpha": alpha,
+           "omnibus": {"statistic": T1, "dof": dof1, "p_value": float(stats.chi2.sf(T1, dof1))}}
+    z_frames = None
+    if direction is not None:
+        G = np.nan_to_num(white(np.where(mask, np.asarray(direction)[unl], 0.0), mask).reshape(unl.size, -1))
+        norms = np.linalg.norm(G, axis=1)
+        if np.all(norms > 0):
+            Gh = G / norms[:, None]
+            s_k = np.sum(Gh * flat, axis=1)
+            C = A * (Gh @ Gh.T)
+            T2 = float(s_k @ np.linalg.solve(C, s_k))
+            out["directional"] = {"statistic": T2, "dof": int(unl.size), "p_value": float(stats.chi2.sf(T2, unl.size))}
+            z_frames = s_k / np.sqrt(np.diag(C))
+    tests = [out["omnibus"]] + ([out["directional"]] if "directional" in out else [])
+    out["detected"] = bool(any(t["p_value"] < alpha / len(tests) for t in tests))
+    scale = np.sqrt(np.diag(A))[:, None, None]
+    loop = np.where(mask, D, np.nan) / white.noise.sigma / scale  # noise units per frame, per observation
+    point_rms = np.sqrt(np.nanmean(loop**2, axis=(0, 2)))
+    worst = np.argsort(-np.nan_to_num(point_rms))[:5]
+    out["per_frame"] = [{"frame": int(rec.frames[k]), "pressure": float(p[k]),
+                         "rms_noise_units": float(np.sqrt(np.nanmean(loop[i] ** 2))),
+                         **({"directional_z": float(z_frames[i])} if z_frames is not None else {})}
+                        for i, k in enumerate(unl)]
+    out["worst_points"] = [{"point": int(rec.point_ids[j]), "X": rec.X[j].tolist(),
+                            "rms_noise_units": float(point_rms[j])} for j in worst]
+    out["largest_loop_mm"] = float(np.nanmax(np.abs(np.where(mask, D, np.nan))))
+    if out["detected"]:
+        out["physics"] = {"kind": "history-dependent",
+                          "meaning": "the recording is not a function of the pressure alone; no hyperelastic, "
+                                     "quasi-static term (every candidate of the library) can explain it",
+                          "possible_causes": list(HISTORY_DEPENDENT)}
+    return out
+
+
 # -- rank -----------------------------------------------------------------------------------------------
 
 def rank(E: np.ndarray, J: np.ndarray, names: list[str], base: list[str], candidates, frames: np.ndarray,
@@ -525,7 +646,6 @@ def rank(E: np.ndarray, J: np.ndarray, names: list[str], base: list[str], candid
         cols = [names.index(p) for p in CANDIDATE_PARAMETERS[c]]
         S = Jm[:, cols]
         U = S - Qb @ (Qb.T @ S)
-        q = len(cols)
         s_full = np.linalg.norm(S, axis=0)
         s_perp = np.linalg.norm(U, axis=0)
         frac = s_perp / np.maximum(s_full, 1e-300)
@@ -652,8 +772,14 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
     c10 = math.exp(base.z["C10"])
     raw = rec.Z - base.evaluation.Y
     # the omnibus test takes half the level, the candidates' score tests the other half (Bonferroni):
-    # a specific alternative is found by its score test long before it shows in the chi^2 total
-    where = locate(base.residual, rec, fit_frames, 1, alpha / 2, raw, nm.sigma, nm.dof)
+    # a specific alternative is found by its score test long before it shows in the chi^2 total. A
+    # recording that comes back down is also tested for path independence (hysteresis, model-free):
+    # it then shares the omnibus half with the chi^2 total
+    loop = hysteresis(rec, white, alpha / 4, _pressure_direction(base_phys, base.z))
+    where = locate(base.residual, rec, fit_frames, 1, alpha / 4 if loop["applicable"] else alpha / 2, raw, nm.sigma,
+                   nm.dof)
+    where["detected_by_hysteresis"] = loop["detected"]
+    where["detected"] = where["detected"] or loop["detected"]
 
     # 2. rank: sensitivities of every candidate at the calibrated point, candidates at their null
     bar.phase("sensitivities of every candidate at the calibrated point", 1)
@@ -713,6 +839,11 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
             for combo in pair:
                 refit(combo, 1)
         decision, best = decide(tried, ranking, evidence_threshold)
+        if best is not None and loop["detected"]:
+            # no term of the library makes a loop: what a candidate explained is part of the story only
+            best["chosen"] = False
+            best["partial"] = True
+            decision, best = "unexplained", None
         if best is not None:
             combo = tuple(best["candidates"])
             accepted = (combo, *fits[combo])
@@ -725,13 +856,18 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
         "noise": {"sigma": nm.sigma, "correlation_length_mm": nm.ell, "estimated": nm.estimated},
         "mismatch_detected": {"detected": where["detected"], "alpha": alpha, "global": where["global"],
                               "by_score_test": where["detected_by_score"],
+                              "by_hysteresis": where["detected_by_hysteresis"],
                               "frames_significant": where["frames_significant"],
                               "points_significant": where["points_significant"]},
         "location": {"clusters": where["clusters"]},
         "onset": where["onset"],
+        "hysteresis": loop,
         "ranking": ranking,
         "tried": tried,
         "decision": decision,
+        "missing_physics": (loop["physics"] if loop["detected"] else
+                            {"kind": "candidate", "name": decision} if decision not in ("none", "unexplained") else
+                            {"kind": decision}),
         "parameters": {"base": base_report["parameters"], "extended": accepted[2]["parameters"] if accepted else None},
         "fit_before": base_report,
         "fit_after": fit_after,

@@ -26,6 +26,7 @@ density (t/mm^3)   linear    N(0, (2e-9)^2), >= 0             0                 
 c_n, c_t (mm^3/N)  linear    N(0, 2^2), >= 0                  0 (clamp)               compliant_base
 pressure_gain      linear    N(1, 0.2^2), > 0                 1                       pressure_sensor
 pressure_offset    linear    N(0, 0.003^2) MPa                0                       pressure_sensor
+delta_y (mm)       linear    N(0, 0.4^2), in [-1, 0.5]        0                       cavity_offset
 =================  ========  ===============================  ======================  =============
 
 A compliant base is evaluated at c = 1e-4 mm^3/N in place of its null (the clamp has no spring
@@ -44,7 +45,7 @@ import torch
 
 from . import fem
 from .fem.sensitivity import sensitivities
-from .geometry.actuator import ActuatorGeometry, build_actuator_model
+from .geometry.actuator import CAVITY_OFFSET, ActuatorGeometry, build_actuator_model
 from .observe import ObservationError, ObservationOperator, visible_faces
 from .recordings import Recording, RecordingError
 
@@ -104,11 +105,13 @@ COORDINATES = {
         Coordinate("c_t", "mm^3/N", "linear", 0.0, 2.0, SPRING_NULL, 1e3, 0.0, "compliant_base"),
         Coordinate("pressure_gain", "1", "linear", 1.0, 0.2, 0.2, 5.0, 1.0, "pressure_sensor"),
         Coordinate("pressure_offset", "MPa", "linear", 0.0, 0.003, -0.02, 0.02, 0.0, "pressure_sensor"),
+        Coordinate("delta_y", "mm", "linear", 0.0, 0.4, CAVITY_OFFSET.low, CAVITY_OFFSET.high, 0.0, "cavity_offset"),
     )
 }
 CANDIDATE_PARAMETERS = {
     "mooney_rivlin": ("C01",), "compressibility": ("D1",), "fiber_stiffness": ("E_fiber",),
     "gravity": ("density",), "compliant_base": ("c_n", "c_t"), "pressure_sensor": ("pressure_gain", "pressure_offset"),
+    "cavity_offset": ("delta_y",),
 }
 GRAVITY_DIRECTION = (0.0, -1.0, 0.0)  # the actuator lies on its side, bending in the camera's plane
 
@@ -156,7 +159,8 @@ class ActuatorPhysics:
         self.model, self.info = build_actuator_model(
             ActuatorGeometry(resolution=self.resolution), material=material,
             base="compliant" if "compliant_base" in self.candidates else "clamp",
-            gravity=GRAVITY_DIRECTION if "gravity" in self.candidates else None)
+            gravity=GRAVITY_DIRECTION if "gravity" in self.candidates else None,
+            cavity_offset="cavity_offset" in self.candidates)
         self.model.finalize()
         self.mesh = self.model.mesh
         faces = visible_faces(self.mesh, (1.0, 0.0, 0.0))
@@ -201,6 +205,8 @@ class ActuatorPhysics:
             p["density"] = nat["density"].reshape(-1)
         if "compliant_base" in self.candidates:
             p["c_n"], p["c_t"] = nat["c_n"].reshape(-1), nat["c_t"].reshape(-1)
+        if "cavity_offset" in self.candidates:
+            p["delta_y"] = nat["delta_y"].reshape(-1)
         return p
 
     def frame_loads(self, z: dict[str, torch.Tensor]) -> torch.Tensor:

@@ -15,6 +15,8 @@ Effects (``EFFECTS``; size k = 1, 2, 3 picks the tabled value of the knob, size 
   under the base), ``pressure_sensor`` (the sensor reads ``p_rec``, the cavity holds ``p_true = gain
   p_rec + offset``; knob the offset in MPa, gain 1: a gain alone is confounded with C10, see
   ``fem.sensor``). The recording is made at the true pressures and stores the recorded ones.
+  ``cavity_offset`` (delta_y, mm: the cavity sits off its nominal axis, a harmonic morph of the
+  generating mesh; negative toward the body's centre, thickening the 1 mm wall on the +y side).
 - outside the library (the right answer is "unexplained"): ``stiff_base_region`` (C10 times the knob
   in the elements whose centroid lies below z = 10 mm, the base endcap: a second body whose material
   carries its own parameter names, ``RenamedMaterial``), ``fiber_debond`` (a stretch of both helices
@@ -36,6 +38,7 @@ fiber_stiffness      E_fiber (MPa)       250, 60, 25             4.8, 19.4, 50.4
 gravity              density (t/mm^3)    1.2e-11, 3e-11, 1e-10   5.6, 13.9, 46.1
 compliant_base       c (mm^3/N)          1000, 2500, 25000       2.0, 2.6, 3.0
 pressure_sensor      offset (MPa)        1.5e-4, 5e-4, 1.5e-3    4.9, 16.5, 50.0
+cavity_offset        delta_y (mm)        -0.25, -0.5, -1.0       6.8, 14.6, 33.2
 stiff_base_region    C10 factor          1.2, 2, 6               5.9, 18.4, 34.7
 fiber_debond         length (mm)         12, 20, 28              6.1, 11.1, 21.2
 sensor_lag           tau (1)             0.004, 0.012, 0.035     5.7, 17.1, 49.9
@@ -48,6 +51,8 @@ force or moment and springs under it only relax the clamp's hold on the base fac
 ``stiff_base_region`` tends to a rigid base endcap (factor 3 gave 25.7). ``fiber_debond`` stays
 below ~21 while the stretch is local (12 mm gave 6.1, 4 mm 0.14); a debonded modulus of 0.31 MPa
 instead of 31 MPa ballooned the cavity (no convergence past 49 % load).
+``cavity_offset`` is capped by the wall: +0.5 mm (half the 1 mm wall) gave 12.7, so the sizes move
+the cavity toward the centre (SNR measured by ``scripts/study_cavity_offset.py``).
 Gravity matters far below a silicone's density (1.1e-9 t/mm^3 would give SNR ~200): the body is soft.
 Spot checks at the generation resolution 2 (15.7k dofs, ~75 s per solve): gravity size 2 gave 14.1,
 fiber_debond size 3 gave 20.9.
@@ -124,6 +129,7 @@ EFFECTS = {e.name: e for e in (
            (1000.0, 2500.0, 25000.0), (2.04, 2.55, 2.98)),
     Effect("pressure_sensor", "library", "pressure_offset", "MPa", 0.0, 0.0, PRESSURE_MAX,
            (0.00015, 0.0005, 0.0015), (4.93, 16.49, 49.99)),
+    Effect("cavity_offset", "library", "delta_y", "mm", 0.0, -1.0, 0.5, (-0.25, -0.5, -1.0), (6.84, 14.55, 33.19)),
     Effect("stiff_base_region", "outside", "C10_factor", "1", 1.0, 1.0, math.inf,
            (1.2, 2.0, 6.0), (5.87, 18.4, 34.72)),
     Effect("fiber_debond", "outside", "length", "mm", 0.0, 0.0, 40.0, (12.0, 20.0, 28.0), (6.13, 11.09, 21.19)),
@@ -220,6 +226,8 @@ def model_parameters(effect: str, value: float, c10: float) -> dict[str, float]:
         p["density"] = value
     elif effect == "compliant_base":
         p["c_n"] = p["c_t"] = value
+    elif effect == "cavity_offset":
+        p["delta_y"] = value
     elif effect == "stiff_base_region":
         p["C10_base"] = value * c10
         p["D1_base"] = 1.0 / (BULK_RATIO * value * c10)
@@ -239,6 +247,8 @@ def build_model(effect: str, value: float, resolution: int):
         kw["gravity"] = (0.0, -1.0, 0.0)
     elif effect == "compliant_base":
         kw["base"] = "compliant"
+    elif effect == "cavity_offset":
+        kw["cavity_offset"] = True
     elif effect == "fiber_debond":
         lo, hi = DEBOND_CENTRE - value / 2, DEBOND_CENTRE + value / 2
         kw["fiber_modulus"] = lambda c: np.where((c[:, 2] > lo) & (c[:, 2] < hi), "E_fiber_debond", "E_fiber")

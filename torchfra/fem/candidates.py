@@ -14,6 +14,8 @@ compliant_base        c_n, c_t (0: clamp) mm^3/N   ``support_face(model, face, c
                                                    in place of ``model.clamp(face)``
 pressure_sensor       pressure_gain (1),           ``with_pressure_sensor(model)``
                       pressure_offset (0) MPa
+cavity_offset         delta_y (0) mm               ``model.morph("delta_y", field, info)`` (e.g.
+                                                   ``build_actuator_model(cavity_offset=True)``)
 ====================  ===========================  ==============================================
 
 Fiber stiffness ``E_fiber`` (MPa) is a parameter of the base model's ``Truss`` (``fiber_stiffness``
@@ -32,6 +34,12 @@ from .pressure import CavityPressure
 from .sensor import SensorCavityPressure
 from .solid import Hex20Solid
 from .springs import ElasticSupport
+
+
+def _cavity_offset_parameter() -> ParameterInfo:
+    from ..geometry.actuator import CAVITY_OFFSET
+
+    return CAVITY_OFFSET
 
 
 @dataclass(frozen=True)
@@ -62,6 +70,8 @@ CANDIDATES = {
                                  low_inclusive=False),)),
         Candidate("pressure_sensor", "gain and offset of the pressure sensor",
                   (SensorCavityPressure.parameters["pressure_gain"], SensorCavityPressure.parameters["pressure_offset"])),
+        Candidate("cavity_offset", "the cavity sits off its nominal axis along y (a misplaced mould core; a morph "
+                  "of the reference mesh)", (_cavity_offset_parameter(),)),
     )
 }
 

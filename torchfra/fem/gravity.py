@@ -20,12 +20,13 @@ from torch.func import grad, vmap
 from ..params import ParameterInfo, check_parameters
 from .elements import as_tensor, gauss_hex, hex20_shape
 from .mesh import Mesh
+from .morph import Morphable
 from .terms import Term, TermOutput, node_dofs
 
 STANDARD_GRAVITY = 9.81e3  # mm/s^2
 
 
-class Gravity(Term):
+class Gravity(Morphable, Term):
     """Weight ``rho g d`` per unit reference volume on (a subset of) the Hex20 elements of a mesh.
 
     density: name of the density parameter (t/mm^3); direction: (3,) direction of gravity (normalized
@@ -60,6 +61,7 @@ class Gravity(Term):
         N, dN = hex20_shape(pts)
         det = np.linalg.det(np.einsum("eai,gaj->egij", mesh.nodes[conn], dN))
         self.nodal_volume = as_tensor(np.einsum("g,eg,ga->ea", wts, det, N), dtype)  # m_a (E, 20), mm^3
+        self._shape = (as_tensor(wts[None], dtype), as_tensor(N[None], dtype), as_tensor(dN[None], dtype))
         self.volume = float(self.nodal_volume.sum())
         self._d = as_tensor(self.direction, dtype)
         # W is linear in u, so its gradient per unit rho g is a constant: derived once by torch.func
@@ -73,12 +75,28 @@ class Gravity(Term):
     def validate(self, params):
         check_parameters(self.parameters, params, "Gravity")
 
+    def _morph_nodes(self):
+        return self.conn.numpy()
+
+    def _nodal_volume(self, params) -> torch.Tensor:
+        """m_a of every member (N, E, 20) under the morphs, or (E, 20) without one."""
+        if not self.morph_names:
+            return self.nodal_volume
+        wts, N, dN = (t[0] for t in self._shape)
+        det = torch.linalg.det(torch.einsum("neai,gaj->negij", self.morphed_reference(params), dN))
+        return torch.einsum("g,neg,ga->nea", wts, det, N)
+
     def evaluate(self, u, params, load_factor, tangent=True, energy=False):
         """Residual ``-lambda rho g m_a d`` per element node; the tangent is zero (``Ke = None``)."""
         N = u.shape[0]
         scale = load_factor * params[self.density] * self.g  # (N,) N/mm^3
-        fe = scale[:, None, None] * self._unit_force
+        if self.morph_names:
+            m = self._nodal_volume(params)
+            fe = -(scale[:, None, None, None] * m[..., None] * self._d).reshape(N, m.shape[1], 60)
+        else:
+            m = self.nodal_volume.expand(N, -1, -1)
+            fe = scale[:, None, None] * self._unit_force
         W = None
         if energy:
-            W = scale * torch.einsum("ea,neai,i->n", self.nodal_volume, u[:, self.conn], -self._d)
+            W = scale * torch.einsum("nea,neai,i->n", m, u[:, self.conn], -self._d)
         return TermOutput(fe, None, W, torch.ones(N, dtype=torch.bool, device=u.device))

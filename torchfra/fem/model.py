@@ -10,6 +10,7 @@ import torch
 from .assembly import SparsePattern
 from .constraints import DofMap
 from .mesh import Mesh, MeshError
+from .morph import MorphError
 from .terms import Term
 
 
@@ -43,6 +44,7 @@ class Model:
         self._prescribed: dict[int, float] = {}
         self._rigid: list[np.ndarray] = []
         self._embedded: list[tuple[int, np.ndarray, np.ndarray]] = []
+        self._morphs: dict[str, tuple[np.ndarray, object]] = {}
         self.memory_budget_mb = memory_budget_mb
         self.dofmap: DofMap | None = None
 
@@ -140,6 +142,61 @@ class Model:
         self._editable()
         self._embedded.append((int(node), np.asarray(hosts, dtype=np.int64), np.asarray(weights, dtype=np.float64)))
 
+    def morph(self, name: str, field: np.ndarray, info=None) -> None:
+        """Reference coordinates ``X + s field`` with ``s`` the member's parameter ``name`` (mm): a
+        geometric imperfection every member may carry with its own size (``fem.morph``). ``field``:
+        (n_mesh_nodes, 3) or (n_nodes, 3); embedded nodes follow their hosts. ``info``: the
+        parameter's ``ParameterInfo`` (range checked at every solve). The morph must vanish on
+        clamped, prescribed and rigid nodes and on terms that cannot follow it."""
+        self._editable()
+        field = np.asarray(field, dtype=np.float64)
+        if field.ndim != 2 or field.shape[1] != 3 or field.shape[0] not in (self.mesh.n_nodes, self.n_nodes):
+            raise MorphError(f"morph '{name}': field must have shape ({self.mesh.n_nodes}, 3) or ({self.n_nodes}, 3), "
+                             f"got {field.shape}")
+        if not np.all(np.isfinite(field)):
+            raise MorphError(f"morph '{name}': field has non-finite entries at nodes "
+                             f"{np.flatnonzero(~np.isfinite(field).all(1))[:5].tolist()}")
+        if name in self._morphs:
+            raise MorphError(f"morph '{name}' is already defined")
+        self._morphs[name] = (field, info)
+
+    @property
+    def morph_names(self) -> list[str]:
+        """Parameters that move the reference geometry (empty: every member shares the mesh)."""
+        return list(self._morphs)
+
+    def morph_fields(self) -> np.ndarray:
+        """Every morph's nodal field on every model node (n_nodes, 3, K); embedded nodes follow their hosts."""
+        out = np.zeros((self.n_nodes, 3, len(self._morphs)))
+        for k, (field, _) in enumerate(self._morphs.values()):
+            out[: field.shape[0], :, k] = field
+            for node, hosts, weights in self._embedded:
+                out[node, :, k] = weights @ out[hosts, :, k]
+        return out
+
+    def _attach_morphs(self) -> None:
+        if not self._morphs:
+            return
+        fields = self.morph_fields()
+        moving = np.abs(fields).max(axis=(1, 2)) > 0
+        names = list(self._morphs)
+        pinned = {"clamped": self.clamped_dofs // 3, "prescribed": np.asarray(sorted(self._prescribed), dtype=np.int64) // 3}
+        for k, nodes in enumerate(self._rigid):
+            pinned[f"rigid body {k}"] = nodes
+        for what, nodes in pinned.items():
+            bad = nodes[moving[nodes]] if nodes.size else nodes
+            if bad.size:
+                raise MorphError(f"morphs {names} move {bad.size} {what} nodes (first: node {int(bad[0])}); a morph "
+                                 "must vanish where the model is constrained")
+        for t in self.terms:
+            nodes = np.unique(t.dofs // 3)
+            if not moving[nodes].any():
+                continue
+            if not hasattr(t, "set_morph"):
+                raise MorphError(f"morphs {names} move nodes of a {type(t).__name__} term (first: node "
+                                 f"{int(nodes[moving[nodes]][0])}), which cannot follow a morph; keep the morph zero there")
+            t.set_morph(names, self.X, fields, self.dtype)
+
     def _editable(self):
         if self.dofmap is not None:
             raise RuntimeError("the model is finalized; build a new Model to change it")
@@ -149,6 +206,7 @@ class Model:
             return self
         if not self.terms:
             raise ValueError("the model has no terms; add at least a solid body")
+        self._attach_morphs()
         clamped = self.clamped_dofs
         presc = {d: v for d, v in self._prescribed.items() if d not in set(clamped.tolist())}
         self.dofmap = DofMap(self.n_nodes, clamped, presc, self._rigid, self._embedded, self.X, self.dtype)
@@ -175,7 +233,7 @@ class Model:
         return self.finalize().dofmap.n_red
 
     def param_names(self) -> list[str]:
-        return sorted({k for t in self.terms for k in t.param_names})
+        return sorted({k for t in self.terms for k in t.param_names} | set(self._morphs))
 
     def validate(self, params: dict[str, torch.Tensor]) -> int:
         """Check parameters (every member); returns the number of members."""
@@ -185,6 +243,11 @@ class Model:
             raise ValueError(f"every parameter must be a 1-D tensor over the same members, got shapes {sizes}")
         for t in self.terms:
             t.validate(params)
+        infos = {name: info for name, (_, info) in self._morphs.items() if info is not None}
+        if infos:
+            from ..params import check_parameters
+
+            check_parameters(infos, params, "the model's morph")
         return n.pop()
 
     # -- evaluation --------------------------------------------------------------------------------

@@ -19,10 +19,11 @@ from torch.func import grad, jacfwd, vmap
 
 from .elements import as_tensor, gauss_quad, quad8_shape
 from .mesh import Mesh
+from .morph import Morphable
 from .terms import Term, TermOutput, node_dofs
 
 
-class _FaceLoad(Term):
+class _FaceLoad(Morphable, Term):
     kind = "load"
 
     def __init__(self, mesh: Mesh, face_set: str, pressure: str = "P", quadrature: int = 3, dtype=torch.float64):
@@ -38,6 +39,13 @@ class _FaceLoad(Term):
         pts, wts = gauss_quad(quadrature)
         N, dN = quad8_shape(pts)
         self.N, self.dN, self.w = as_tensor(N, dtype), as_tensor(dN, dtype), as_tensor(wts, dtype)
+
+    def _morph_nodes(self):
+        return self.face_conn.numpy()
+
+    def _reference(self, params, N: int) -> torch.Tensor:
+        """Reference face nodes of every member, (N, B, 8, 3) (broadcast (B, 8, 3) without a morph)."""
+        return self.morphed_reference(params) if self.morph_names else self.X
 
     def area_vectors(self, x: torch.Tensor) -> torch.Tensor:
         """``x_s x x_t`` at the face Gauss points. x: (..., 8, 3) -> (..., Q, 3)."""
@@ -61,7 +69,7 @@ class FollowerPressure(_FaceLoad):
 
     def evaluate(self, u, params, load_factor, tangent=True, energy=False):
         N = u.shape[0]
-        x = self.X + u[:, self.face_conn]  # (N, B, 8, 3)
+        x = self._reference(params, N) + u[:, self.face_conn]  # (N, B, 8, 3)
         scale = self._scale(params, load_factor)
         flat = x.reshape(-1, 8, 3)
         fe = -scale[:, None, None] * vmap(self._face_force)(flat).reshape(N, -1, 24)
@@ -84,14 +92,15 @@ class CavityPressure(_FaceLoad):
     def _face_volume(self, x: torch.Tensor) -> torch.Tensor:
         return torch.einsum("q,qi,qi->", self.w, torch.einsum("qa,ai->qi", self.N, x), self.area_vectors(x)) / 3.0
 
-    def cavity_volume(self, u: torch.Tensor) -> torch.Tensor:
-        """u: (N, n_nodes, 3) -> V (N,)."""
-        x = self.X + u[:, self.face_conn]
+    def cavity_volume(self, u: torch.Tensor, params: dict | None = None) -> torch.Tensor:
+        """u: (N, n_nodes, 3) -> V (N,) (``params`` carry the morphs, if any)."""
+        x = self._reference(params, u.shape[0]) + u[:, self.face_conn]
         return vmap(self._face_volume)(x.reshape(-1, 8, 3)).reshape(u.shape[0], -1).sum(1)
 
     def evaluate(self, u, params, load_factor, tangent=True, energy=False):
         N = u.shape[0]
-        x = (self.X + u[:, self.face_conn]).reshape(-1, 8, 3)
+        X = self._reference(params, N)
+        x = (X + u[:, self.face_conn]).reshape(-1, 8, 3)
         scale = self._scale(params, load_factor)
         fe = -scale[:, None, None] * vmap(grad(self._face_volume))(x).reshape(N, -1, 24)
         Ke = None
@@ -100,8 +109,8 @@ class CavityPressure(_FaceLoad):
             Ke = -scale[:, None, None, None] * H
         W = None
         if energy:
-            V0 = vmap(self._face_volume)(self.X).sum()
-            W = -scale * (self.cavity_volume(u) - V0)
+            V0 = vmap(self._face_volume)(X.expand(N, -1, -1, -1).reshape(-1, 8, 3)).reshape(N, -1).sum(1)
+            W = -scale * (self.cavity_volume(u, params) - V0)
         ok = torch.ones(N, dtype=torch.bool, device=u.device)
         return TermOutput(fe, Ke, W, ok)
 

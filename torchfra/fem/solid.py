@@ -21,10 +21,11 @@ from .elements import as_tensor, gauss_hex, hex20_shape, linear_pressure_modes
 from .kinematics import deformation_gradient, det3
 from .materials import GaussPointTangent, Material
 from .mesh import Mesh
+from .morph import Morphable
 from .terms import Term, TermOutput, node_dofs
 
 
-class Hex20Solid(Term):
+class Hex20Solid(Morphable, Term):
     """A material body on (a subset of) the Hex20 elements of a mesh.
 
     formulation: ``"hybrid"`` (C3D20RH analogue) or ``"displacement"`` (C3D20R analogue).
@@ -32,6 +33,9 @@ class Hex20Solid(Term):
     Reduced integration leaves near-zero-energy modes in thin layers; a follower or cavity pressure's
     load stiffness can drive them negative (seen in the actuator's fiber-free cavity ring at
     resolution 2 beyond 45 % load), which full integration removes.
+
+    Under a morph (``fem.morph``) each member has its own element geometry, computed from its
+    morphed reference coordinates at every evaluation (member by member).
     """
 
     kind = "internal"
@@ -57,28 +61,64 @@ class Hex20Solid(Term):
         dN_dX = np.einsum("gaj,egji->egai", dN, np.linalg.inv(jac))
         self.dN_dX = as_tensor(dN_dX, dtype)  # (E, G, 20, 3)
         self.wdet = as_tensor(wts[None] * det, dtype)  # (E, G)
+        self._dN_nat = as_tensor(dN[None], dtype)  # (1, G, 20, 3): natural derivatives, for morphed geometry
+        self._w_nat = as_tensor(wts[None], dtype)  # (1, G)
         self.Np = as_tensor(linear_pressure_modes(pts), dtype)  # (G, 4)
         self.volume = float(self.wdet.sum())
 
     def validate(self, params):
         self.material.validate(params)
 
+    def _morph_nodes(self):
+        return self.conn.numpy()
+
+    def _geometries(self, params, N: int):
+        """``(members, dN_dX, wdet)``: one entry for all members without a morph, one per member
+        (its own morphed element geometry) with one."""
+        if not self.morph_names:
+            yield slice(None), self.dN_dX, self.wdet
+            return
+        X = self.morphed_reference(params)  # (N, E, 20, 3)
+        dN = self._dN_nat[0]
+        for m in range(N):
+            jac = torch.einsum("eai,gaj->egij", X[m], dN)
+            yield slice(m, m + 1), torch.einsum("gaj,egji->egai", dN, torch.linalg.inv(jac)), self._w_nat * det3(jac)
+
+    def _per_member(self, fn, u, params, *member_args):
+        """``fn(u, params, dN_dX, wdet, *args)`` over the members' geometries, outputs concatenated."""
+        parts = []
+        for sl, dN, w in self._geometries(params, u.shape[0]):
+            sub = {k: v[sl] for k, v in params.items()}
+            parts.append(fn(u[sl], sub, dN, w, *[None if a is None else a[sl] for a in member_args]))
+        if len(parts) == 1:
+            return parts[0]
+        if isinstance(parts[0], torch.Tensor):
+            return torch.cat(parts)
+        fields = [getattr(parts[0], f) for f in ("fe", "Ke", "energy", "ok", "fe_condensed")]
+        return TermOutput(*[None if v is None else torch.cat([getattr(p, f) for p in parts])
+                            for v, f in zip(fields, ("fe", "Ke", "energy", "ok", "fe_condensed"))])
+
     @property
     def n_local(self) -> int:
         """Element-local unknowns per element carried by Newton: the 4 pressure dofs (hybrid)."""
         return 4 if self.formulation == "hybrid" else 0
 
-    def _pressure_system(self, F, prm):
+    def _material_params(self, params):
+        return {k: params[k][:, None, None] for k in self.material.param_names}
+
+    def _pressure_system(self, F, prm, wdet):
         """Pressure equations of each element: ``K_pp`` (N, E, 4, 4), ``r_p0 = int N_p dpsi/dp(F, 0)``."""
         d, h = self.material.pressure_coefficients(F, prm)
-        Kpp = torch.einsum("eg,neg,gm,gk->nemk", self.wdet, h, self.Np, self.Np)
-        rp0 = torch.einsum("eg,neg,gm->nem", self.wdet, d, self.Np)
+        Kpp = torch.einsum("eg,neg,gm,gk->nemk", wdet, h, self.Np, self.Np)
+        rp0 = torch.einsum("eg,neg,gm->nem", wdet, d, self.Np)
         return Kpp, rp0
 
     def pressure_projection(self, u, params) -> torch.Tensor:
         """Element pressure dofs stationary for the displacements u: (N, E, 4)."""
-        prm = {k: params[k][:, None, None] for k in self.param_names}
-        Kpp, rp0 = self._pressure_system(deformation_gradient(u[:, self.conn], self.dN_dX), prm)
+        return self._per_member(self._pressure_projection, u, params)
+
+    def _pressure_projection(self, u, params, dN, w):
+        Kpp, rp0 = self._pressure_system(deformation_gradient(u[:, self.conn], dN), self._material_params(params), w)
         return -torch.linalg.solve(Kpp, rp0)
 
     def gauss_point_pressure(self, u, params) -> torch.Tensor:
@@ -86,24 +126,30 @@ class Hex20Solid(Term):
         equilibrium, the value Newton converged to)."""
         if self.formulation == "hybrid":
             return torch.einsum("gm,nem->neg", self.Np, self.pressure_projection(u, params))
-        prm = {k: params[k][:, None, None] for k in self.param_names}
-        d0, h = self.material.pressure_coefficients(deformation_gradient(u[:, self.conn], self.dN_dX), prm)
+        return self._per_member(self._displacement_pressure, u, params)
+
+    def _displacement_pressure(self, u, params, dN, w):
+        d0, h = self.material.pressure_coefficients(deformation_gradient(u[:, self.conn], dN),
+                                                    self._material_params(params))
         return -d0 / h
 
     def evaluate(self, u, params, load_factor, tangent=True, energy=False, local=None):
         """``local``: element pressure dofs (N, E, 4) of the hybrid brick carried by Newton; None
         projects them from u (the stationary value). With ``local`` the output also holds the
         condensed residual ``r_u - K_up K_pp^-1 r_p`` that Newton solves with."""
-        prm = {k: params[k][:, None, None] for k in self.param_names}
-        F = deformation_gradient(u[:, self.conn], self.dN_dX)
+        return self._per_member(lambda uu, pp, dN, w, loc: self._evaluate(uu, pp, dN, w, tangent, energy, loc),
+                                u, params, local)
+
+    def _evaluate(self, u, params, dN, w, tangent, energy, local):
+        prm = self._material_params(params)
+        F = deformation_gradient(u[:, self.conn], dN)
         J = det3(F)
-        ok = (J > 0).flatten(1).all(dim=1)
-        w, dN = self.wdet, self.dN_dX
+        ok = (J > 0).flatten(1).all(dim=1) & (w > 0).all()
         if self.formulation == "displacement":
             d0, h = self.material.pressure_coefficients(F, prm)
             p, cond = -d0 / h, -1.0 / h
         else:
-            Kpp, rp0 = self._pressure_system(F, prm)
+            Kpp, rp0 = self._pressure_system(F, prm, w)
             Kpp_inv = torch.linalg.inv(Kpp)
             p_e = -torch.einsum("nemk,nek->nem", Kpp_inv, rp0) if local is None else local
             p = torch.einsum("gm,nem->neg", self.Np, p_e)
@@ -129,12 +175,15 @@ class Hex20Solid(Term):
     def local_update(self, u, params, local, du) -> torch.Tensor:
         """Newton update of the element pressure dofs for a displacement update ``du`` (N, n_nodes, 3):
         ``dp = -K_pp^-1 (r_p + K_pu du_e)`` -> (N, E, 4)."""
-        prm = {k: params[k][:, None, None] for k in self.param_names}
-        F = deformation_gradient(u[:, self.conn], self.dN_dX)
-        Kpp, rp0 = self._pressure_system(F, prm)
+        return self._per_member(self._local_update, u, params, local, du)
+
+    def _local_update(self, u, params, dN, w, local, du):
+        prm = self._material_params(params)
+        F = deformation_gradient(u[:, self.conn], dN)
+        Kpp, rp0 = self._pressure_system(F, prm, w)
         r_p = rp0 + torch.einsum("nemk,nek->nem", Kpp, local)
         Fp = self.material.pressure_gradient(F, torch.einsum("gm,nem->neg", self.Np, local), prm)
-        G = torch.einsum("eg,gm,negp->nemp", self.wdet, self.Np, _nodal_gradients(self.dN_dX, Fp))
+        G = torch.einsum("eg,gm,negp->nemp", w, self.Np, _nodal_gradients(dN, Fp))
         rhs = r_p + torch.einsum("nemp,nep->nem", G, du[:, self.conn].flatten(2))
         return -torch.linalg.solve(Kpp, rhs)
 

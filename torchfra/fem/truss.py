@@ -15,10 +15,11 @@ import torch
 from torch.func import grad, jacfwd, vmap
 
 from .elements import as_tensor, gauss_1d, line3_shape
+from .morph import Morphable
 from .terms import Term, TermOutput, node_dofs
 
 
-class Truss(Term):
+class Truss(Morphable, Term):
     """Line3 trusses between model nodes.
 
     X: (n_model_nodes, 3) reference coordinates of the model; conn: (B, 3) node indices (ends, middle);
@@ -54,20 +55,32 @@ class Truss(Term):
             m = int(torch.nonzero(v <= 0)[0, 0])
             raise ValueError(f"parameter {self.modulus} of member {m} must be positive, got {float(v[m])}")
 
+    def _morph_nodes(self):
+        return self.conn.numpy()
+
+    def _reference(self, params, N: int):
+        """Reference nodes (N, B, 3, 3) and Gauss-point lengths ``|X_s|`` (N, B, Q) of every member."""
+        if not self.morph_names:
+            return self.X.expand(N, -1, -1, -1), self.jac0.expand(N, -1, -1)
+        X = self.morphed_reference(params)
+        return X, torch.linalg.norm(torch.einsum("qa,nbai->nbqi", self.dN, X), dim=-1)
+
     def _element_energy(self, x: torch.Tensor, jac0: torch.Tensor, EA: torch.Tensor) -> torch.Tensor:
         xs = torch.einsum("qa,ai->qi", self.dN, x)
         eps = 0.5 * ((xs * xs).sum(-1) / jac0**2 - 1.0)
         return 0.5 * EA * (self.w * jac0 * eps**2).sum()
 
-    def axial_strain(self, u: torch.Tensor) -> torch.Tensor:
-        """Green strain at the Gauss points, (N, B, 2)."""
-        xs = torch.einsum("qa,nbai->nbqi", self.dN, self.X + u[:, self.conn])
-        return 0.5 * ((xs * xs).sum(-1) / self.jac0**2 - 1.0)
+    def axial_strain(self, u: torch.Tensor, params: dict | None = None) -> torch.Tensor:
+        """Green strain at the Gauss points, (N, B, 2) (``params`` carry the morphs, if any)."""
+        X, jac0 = self._reference(params, u.shape[0])
+        xs = torch.einsum("qa,nbai->nbqi", self.dN, X + u[:, self.conn])
+        return 0.5 * ((xs * xs).sum(-1) / jac0**2 - 1.0)
 
     def evaluate(self, u, params, load_factor, tangent=True, energy=False):
         N, B = u.shape[0], self.conn.shape[0]
-        x = (self.X + u[:, self.conn]).reshape(N * B, 3, 3)
-        jac0 = self.jac0.repeat(N, 1)
+        X, jac0 = self._reference(params, N)
+        x = (X + u[:, self.conn]).reshape(N * B, 3, 3)
+        jac0 = jac0.reshape(N * B, -1)
         EA = (params[self.modulus] * self.area).repeat_interleave(B)
         fe = vmap(grad(self._element_energy))(x, jac0, EA).reshape(N, B, 9)
         Ke = vmap(jacfwd(grad(self._element_energy)))(x, jac0, EA).reshape(N, B, 9, 9) if tangent else None

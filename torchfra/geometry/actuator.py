@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 
 from ..fem.elements import HEX20_FACES, HEX20_NATURAL, hex20_shape
 from ..fem.mesh import Mesh
+from ..params import ParameterInfo
 from .embedding import embedding_weights, locate_points
 
 __all__ = [
@@ -111,7 +112,7 @@ class ActuatorGeometry:
         return min(1.5 * self.cavity_radius, hx, hy - e, hy + e)
 
     # -- checks ----------------------------------------------------------------------------------
-    def validate(self) -> "ActuatorGeometry":
+    def validate(self, helices: bool = True) -> "ActuatorGeometry":
         """Raise GeometryError naming the dimension if the geometry cannot be built; returns self."""
         for name in ("width_x", "width_y", "length", "cavity_radius", "endcap_base", "endcap_top",
                      "fiber_diameter", "helix_radius", "axial_aspect"):
@@ -139,6 +140,8 @@ class ActuatorGeometry:
                 f"the endcaps leave no cavity: endcap_base + endcap_top = {self.endcap_base:g} + {self.endcap_top:g} "
                 f">= length = {self.length:g}"
             )
+        if not helices:  # the fibers are given by the caller, not by the helices
+            return self
         if R <= r:
             raise GeometryError(
                 f"helix_radius = {R:g} <= cavity_radius = {r:g}: the fibers would run inside the cavity"
@@ -286,7 +289,7 @@ def actuator_mesh(geom: ActuatorGeometry | None = None) -> Mesh:
     Face sets: the same outer faces, ``exterior`` (all of them) and ``cavity``: the closed cavity
     surface (the ring's inner faces over the cavity length plus the endcap core faces at z0, z1).
     """
-    geom = (geom or ActuatorGeometry()).validate()
+    geom = (geom or ActuatorGeometry()).validate(helices=False)
     div = _divisions(geom)
     patches = _cross_section(geom, div)
     layers = _z_layers(geom, div)
@@ -400,9 +403,24 @@ def element_sets(geom: ActuatorGeometry, mesh: Mesh) -> dict[str, np.ndarray]:
     }
 
 
+CAVITY_OFFSET = ParameterInfo(
+    "delta_y", "mm", 0.0, -1.0, 0.5,
+    "shift of the cavity along y from its nominal axis (a misplaced mould core), outer surfaces fixed; "
+    "at most half the 1 mm wall between the paper's cavity and the face y = +8, at most 1 mm the other way")
+
+
+def cavity_offset_field(mesh: Mesh) -> np.ndarray:
+    """Morph field of a cavity shifted along +y: 1 on the cavity surface, 0 on the outer surfaces
+    (base, top and sides), harmonic in between (:func:`fem.morph.harmonic_field`)."""
+    from ..fem.morph import harmonic_field
+
+    return harmonic_field(mesh, mesh.node_set("cavity"), mesh.face_set_nodes("exterior"), (0.0, 1.0, 0.0))
+
+
 def build_actuator_model(geom: ActuatorGeometry | None = None, formulation: str = "hybrid",
                          elements_per_turn: int | None = None, integration: str = "full",
-                         material=None, base: str = "clamp", gravity=None, fiber_modulus="E_fiber"):
+                         material=None, base: str = "clamp", gravity=None, fiber_modulus="E_fiber",
+                         cavity_offset: bool = False, fibers=None):
     """The paper's actuator model (§2, §4): Neo-Hookean Hex20 body, embedded Line3 fibers, clamped
     base, rigid flat top, conservative pressure ``P`` in the closed cavity.
 
@@ -413,7 +431,11 @@ def build_actuator_model(geom: ActuatorGeometry | None = None, formulation: str 
     (``ElasticSupport`` springs ``c_n``, ``c_t`` under the base instead of the clamp), ``gravity`` (a
     direction vector: self-weight with parameter ``density``), ``fiber_modulus`` (the fibers' modulus
     parameter name, or a callable ``element centroids (m, 3) -> names (m,)`` to give fiber segments
-    their own moduli, e.g. a debonded stretch).
+    their own moduli, e.g. a debonded stretch), ``cavity_offset=True`` (a misplaced mould core:
+    parameter ``delta_y``, mm, moves the cavity along y relative to the outer surfaces by a
+    harmonic morph of the mesh, :data:`CAVITY_OFFSET`; the fibers follow the material they sit in).
+    ``fibers``: ``(X (n, 3), conn (m, 3))`` Line3 fiber nodes and connectivity to embed in place of
+    the geometry's helices (e.g. fiber paths measured on a specimen).
     ``integration="full"`` (3x3x3, the C3D20H analogue) by default: with the paper's reduced 2x2x2
     rule the fiber-free ring next to the pressurized cavity has a spurious mode that the cavity
     pressure's load stiffness drives negative (resolution 2 stopped at 52 % load: three negative
@@ -427,13 +449,14 @@ def build_actuator_model(geom: ActuatorGeometry | None = None, formulation: str 
     """
     from .. import fem
 
-    geom = (geom or ActuatorGeometry()).validate()
+    geom = (geom or ActuatorGeometry()).validate(helices=fibers is None)
     mesh = actuator_mesh(geom)
     model = fem.Model(mesh)
     if base not in ("clamp", "compliant"):
         raise ValueError(f"base must be 'clamp' or 'compliant', got {base!r}")
     model.add(fem.Hex20Solid(mesh, material or fem.NeoHookean(), formulation, integration=integration))
-    X_fiber, conn = fiber_mesh(geom, elements_per_turn)
+    X_fiber, conn = fiber_mesh(geom, elements_per_turn) if fibers is None else (
+        np.asarray(fibers[0], dtype=np.float64), np.asarray(fibers[1], dtype=np.int64))
     hosts, xi = locate_points(mesh, X_fiber)
     N, _ = hex20_shape(xi)
     fiber_nodes = model.add_nodes(X_fiber)
@@ -450,6 +473,8 @@ def build_actuator_model(geom: ActuatorGeometry | None = None, formulation: str 
         model.add(fem.Gravity(mesh, direction=gravity))
     model.rigid("top")
     model.add(fem.CavityPressure(mesh, "cavity", pressure="P"))
+    if cavity_offset:
+        model.morph("delta_y", cavity_offset_field(mesh), CAVITY_OFFSET)
 
     front = mesh.node_set("front")
     z0, _ = geom.cavity_z

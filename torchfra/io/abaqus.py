@@ -96,6 +96,9 @@ def _id_lines(ids, per_line: int = 10) -> list[str]:
 
 def _param_values(model: Model, params: dict) -> dict[str, float]:
     """One float per parameter the model's terms use; raise naming what is missing or not scalar."""
+    if model.morph_names:
+        raise ValueError(f"write_inp exports the mesh's nodes, but the model morphs them ({model.morph_names}); "
+                         "build the model without the morph on a re-meshed geometry to export it")
     values = {}
     for name in model.param_names():
         if name not in params:

@@ -47,24 +47,26 @@ def element_fields(solid: Hex20Solid, u: torch.Tensor, params: dict[str, torch.T
 
     A member with NaN displacements (it did not reach that load) gets NaN fields.
     """
-    prm = {k: params[k][:, None, None] for k in solid.param_names}
+    parts = {"S": [], "MISES": [], "PRESS": [], "EVOL_RATIO": []}
     with torch.no_grad():
-        F = deformation_gradient(u[:, solid.conn], solid.dN_dX)  # (N, E, G, 3, 3)
-        p = solid.gauss_point_pressure(u, params)
-        P = solid.material.derivatives(F, p, prm).P
-        tau = P @ F.transpose(-1, -2)  # Kirchhoff stress J sigma
-        J = det3(F)
-        sigma = tau / J[..., None, None]
-        w = solid.wdet  # (E, G) reference volume weights
-        v = w * J  # current volume weights
-        volume = v.sum(-1)
-        S = torch.einsum("eg,negij->neij", w, tau) / volume[..., None, None]
-        dev = sigma - torch.diagonal(sigma, dim1=-2, dim2=-1).mean(-1)[..., None, None] * torch.eye(3, dtype=F.dtype)
-        mises_gp = torch.sqrt(1.5 * (dev * dev).sum((-1, -2)))
-        mises = (v * mises_gp).sum(-1) / volume
-        press = -torch.diagonal(S, dim1=-2, dim2=-1).mean(-1)
-        evol = volume / w.sum(-1)
-    return {"S": S, "MISES": mises, "PRESS": press, "EVOL_RATIO": evol}
+        p_all = solid.gauss_point_pressure(u, params)
+        for members, dN, w in solid._geometries(params, u.shape[0]):  # one entry unless the mesh is morphed
+            prm = {k: params[k][members, None, None] for k in solid.material.param_names}
+            F = deformation_gradient(u[members][:, solid.conn], dN)  # (N, E, G, 3, 3)
+            P = solid.material.derivatives(F, p_all[members], prm).P
+            tau = P @ F.transpose(-1, -2)  # Kirchhoff stress J sigma
+            J = det3(F)
+            sigma = tau / J[..., None, None]
+            v = w * J  # current volume weights (w: reference volume weights (E, G))
+            volume = v.sum(-1)
+            S = torch.einsum("eg,negij->neij", w, tau) / volume[..., None, None]
+            dev = sigma - torch.diagonal(sigma, dim1=-2, dim2=-1).mean(-1)[..., None, None] * torch.eye(3, dtype=F.dtype)
+            mises_gp = torch.sqrt(1.5 * (dev * dev).sum((-1, -2)))
+            parts["S"].append(S)
+            parts["MISES"].append((v * mises_gp).sum(-1) / volume)
+            parts["PRESS"].append(-torch.diagonal(S, dim1=-2, dim2=-1).mean(-1))
+            parts["EVOL_RATIO"].append(volume / w.sum(-1))
+    return {k: torch.cat(v) for k, v in parts.items()}
 
 
 def write_vtu(

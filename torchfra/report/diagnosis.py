@@ -1,6 +1,7 @@
 """Figures of a diagnosis (PNG in the run folder and TensorBoard): residual maps on the face before
 and after, residual over time at the worst points, the candidate ranking, the posterior of the added
-parameters, and observed vs base vs extended model at the worst point."""
+parameters, observed vs base vs extended model at the worst point, and, for a recording that comes back
+down, the loading and unloading branches at the point with the largest loop (hysteresis)."""
 from __future__ import annotations
 
 import math
@@ -25,7 +26,6 @@ def write_figures(run_dir: Path, rec, out: dict, base, extended, sigma: float, w
     run_dir = Path(run_dir)
     writer = open_writer(run_dir)
     try:
-        frames = np.arange(rec.n_frames)
         raw_b = (rec.Z - base.evaluation.Y) / sigma
         raw_a = (rec.Z - extended.evaluation.Y) / sigma if extended is not None else None
         rms_b = np.sqrt(np.nanmean(raw_b**2, axis=(0, 2)))
@@ -78,6 +78,24 @@ def write_figures(run_dir: Path, rec, out: dict, base, extended, sigma: float, w
             ax.set_ylabel(f"u{'yz'[c]} (mm) at point {rec.point_ids[p]}")
         axs[0].legend(fontsize=7)
         log_figure(writer, "diagnosis/observed_vs_models", fig, run_dir / "observed_vs_models.png")
+
+        loop = out.get("hysteresis", {})
+        if loop.get("applicable"):
+            ids = list(rec.point_ids)
+            q = ids.index(loop["worst_points"][0]["point"])
+            up = [list(rec.frames).index(f) for f in loop["frames_loading"]]
+            down = [list(rec.frames).index(f) for f in loop["frames_unloading"]]
+            fig = Figure(figsize=(7, 4))
+            axs = fig.subplots(1, 2)
+            for c, ax in enumerate(axs):
+                ax.plot(rec.pressure[up], rec.Z[up, q, c], "C0o-", ms=3, label="loading")
+                ax.plot(rec.pressure[down], rec.Z[down, q, c], "C3s-", ms=3, label="unloading")
+                ax.set_xlabel("pressure (MPa)")
+                ax.set_ylabel(f"u{'yz'[c]} (mm) at point {rec.point_ids[q]}")
+            verdict = "hysteresis: history-dependent physics" if loop["detected"] else "no significant loop"
+            axs[0].set_title(verdict, fontsize=9)
+            axs[0].legend(fontsize=7)
+            log_figure(writer, "diagnosis/hysteresis", fig, run_dir / "hysteresis.png")
 
         if extended is not None:
             added = [n for n in extended.names if n != "C10"]
