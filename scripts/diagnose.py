@@ -63,8 +63,10 @@ def main(argv=None) -> dict:
         h = out["hysteresis"]
         if h.get("detected"):
             print(f"hysteresis: loading and unloading differ at equal pressure (largest loop {h['largest_loop_mm']:.3g} mm "
-                  f"at point {h['worst_points'][0]['point']}): history-dependent physics the library cannot model ("
-                  + ", ".join(h["physics"]["possible_causes"]) + ")")
+                  f"at point {h['worst_points'][0]['point']}; the body {h.get('sense', 'lags or leads')} its load): "
+                  + ("explained by the library's viscoelastic creep" if out["decision"] == "viscoelasticity" else
+                     "history-dependent physics the library does not explain (" + ", ".join(h["physics"]["possible_causes"])
+                     + ")"))
     return out
 
 

@@ -49,17 +49,18 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 from scipy import linalg, stats
 
-from .physics import CANDIDATE_PARAMETERS, COORDINATES, ActuatorPhysics, Evaluation, null_coordinate
+from .physics import (CANDIDATE_PARAMETERS, COORDINATES, HISTORY_DEPENDENT_CANDIDATES, LOAD_MAP_ONLY, NUISANCE,
+                      RIVALS, ActuatorPhysics, Evaluation, null_coordinate)
 from .recordings import Recording, RecordingError
 
-ALL_CANDIDATES = tuple(sorted(CANDIDATE_PARAMETERS))
+ALL_CANDIDATES = tuple(sorted(set(CANDIDATE_PARAMETERS) - set(RIVALS.values())))
 MAX_PRESSURE = 0.5  # MPa: beyond any pressure the soft actuator survives (a unit mistake)
 # Levenberg-Marquardt: a rejected step is retried with the damping raised tenfold (from 1e-2 up to
 # 1e5 x diag(H), a short gradient step). Measured on a fiber compliance, E_fiber = 60 MPa, scanned
@@ -390,6 +391,48 @@ def scan_start(phys: ActuatorPhysics, white: Whitener, free: list[str], added: l
     return start, solves, trace
 
 
+LOAD_MAP_GRIDS = {"g1": (0.02, 0.05, 0.1, 0.2, 0.3, 0.45, 0.6, 0.75, 0.9),
+                  "tau1": tuple(np.logspace(-2.5, 0.5, 13)),
+                  "pressure_lag": tuple(np.linspace(-0.1, 0.1, 41))}
+
+
+def load_map_start(phys: ActuatorPhysics, white: Whitener, free: list[str], added: list[str], z0: dict[str, float],
+                   fit_frames: np.ndarray) -> tuple[dict[str, float], int, list]:
+    """A starting point for a refit whose added parameters act on the frame-to-load map only
+    (viscoelasticity's g1 and tau1, a pressure lag): ``z0`` and every point of the grid of the
+    added parameters (:data:`LOAD_MAP_GRIDS`, natural units) are scored by the misfit with the
+    other free parameters (C10) profiled out by their Gauss-Newton correction. The FE solve at
+    ``z0`` serves every grid point, so the grid costs one solve; the objective in tau1 has a
+    plateau on each side of the recording's time scale, which a local fit from the prior's tau1
+    could not leave. Returns (start, solves, trace) as :func:`scan_start`."""
+    import itertools
+
+    coords = [COORDINATES[n] for n in free]
+    mu = np.array([c.prior_mean for c in coords])
+    sd = np.array([c.prior_std for c in coords])
+    ib = [i for i, n in enumerate(free) if n not in added]
+    points = [dict(z0)] + [dict(z0) | {n: COORDINATES[n].clip(COORDINATES[n].coordinate(v)) for n, v in zip(added, vals)}
+                           for vals in itertools.product(*(LOAD_MAP_GRIDS[n] for n in added))]
+    best, start, trace = math.inf, dict(z0), []
+    for z in points:
+        ev, phi, r, Jm = _objective(phys, white, phys.rec.Z, fit_frames, z, free, mu, sd)
+        if not math.isfinite(phi):
+            continue
+        x = np.array([z[n] for n in free])
+        g = Jm.T @ r - (x - mu) / sd**2
+        H = Jm.T @ Jm + np.diag(1 / sd**2)
+        corrected = dict(z)
+        if ib:
+            db = np.linalg.solve(H[np.ix_(ib, ib)], g[ib])
+            phi -= 0.5 * float(g[ib] @ db)
+            for i, d in zip(ib, db):
+                corrected[free[i]] = coords[i].clip(z[free[i]] + d)
+        trace.append({n: z[n] for n in added} | {"misfit": phi})
+        if phi < best:
+            best, start = phi, corrected
+    return start, 1, trace
+
+
 # -- locate -------------------------------------------------------------------------------------------
 
 def _bh(p: np.ndarray, alpha: float) -> np.ndarray:
@@ -513,6 +556,15 @@ def _clusters(X: np.ndarray, sig: np.ndarray, rms: np.ndarray, ids: np.ndarray) 
 
 HISTORY_DEPENDENT = ("viscoelasticity", "a time lag of the pressure sensor", "Mullins-type damage on first loading",
                      "friction", "a drift of the camera or the specimen in time")
+# the sense of the loop sorts the causes: a passive body that dissipates (creep, damage, friction)
+# takes more work on loading than it returns, so at equal pressure it unloads through larger
+# displacements (it lags its load); a loop the other way round would return more work than it took,
+# which only a clock (a lagging pressure sensor, a camera out of step) or a drift can make. A cavity
+# whose pressure lags its sensor (a pneumatic line) makes a loop of the first sense, like a creeping body
+CAUSES = {"lags": ("viscoelasticity", "the cavity's pressure lagging its sensor (a pneumatic line between them)",
+                   "Mullins-type damage on first loading", "friction", "a drift of the camera or the specimen in time"),
+          "leads": ("a time lag of the pressure sensor, or the camera's clock out of step with it",
+                    "a drift of the camera or the specimen in time")}
 
 
 def _pressure_direction(phys: ActuatorPhysics, z: dict[str, float]) -> np.ndarray | None:
@@ -604,6 +656,8 @@ def hysteresis(rec: Recording, white: Whitener, alpha: float, direction: np.ndar
             T2 = float(s_k @ np.linalg.solve(C, s_k))
             out["directional"] = {"statistic": T2, "dof": int(unl.size), "p_value": float(stats.chi2.sf(T2, unl.size))}
             z_frames = s_k / np.sqrt(np.diag(C))
+            # along dY/dpressure: > 0 when unloading passes through larger displacements than loading
+            out["sense"] = "lags" if float(np.sum(s_k)) > 0 else "leads"
     tests = [out["omnibus"]] + ([out["directional"]] if "directional" in out else [])
     out["detected"] = bool(any(t["p_value"] < alpha / len(tests) for t in tests))
     scale = np.sqrt(np.diag(A))[:, None, None]
@@ -618,10 +672,15 @@ def hysteresis(rec: Recording, white: Whitener, alpha: float, direction: np.ndar
                             "rms_noise_units": float(point_rms[j])} for j in worst]
     out["largest_loop_mm"] = float(np.nanmax(np.abs(np.where(mask, D, np.nan))))
     if out["detected"]:
+        sense = out.get("sense")
         out["physics"] = {"kind": "history-dependent",
-                          "meaning": "the recording is not a function of the pressure alone; no hyperelastic, "
-                                     "quasi-static term (every candidate of the library) can explain it",
-                          "possible_causes": list(HISTORY_DEPENDENT)}
+                          "meaning": "the recording is not a function of the pressure alone: no hyperelastic, "
+                                     "quasi-static term can explain it"
+                                     + {"lags": "; the body lags its load, as a dissipating body does",
+                                        "leads": "; the body leads the recorded pressure, which no passive body "
+                                                 "does: a clock or a drift",
+                                        None: ""}[sense],
+                          "possible_causes": list(CAUSES.get(sense, HISTORY_DEPENDENT))}
     return out
 
 
@@ -643,7 +702,10 @@ def rank(E: np.ndarray, J: np.ndarray, names: list[str], base: list[str], candid
     excess = max(float(e_perp @ e_perp) - n_base, 1e-12)
     rows, bases = [], {}
     for c in candidates:
-        cols = [names.index(p) for p in CANDIDATE_PARAMETERS[c]]
+        # a nuisance parameter (tau1) has no effect at its candidate's null: the score test is the
+        # one of the others at the nuisance's prior value (valid at any fixed value)
+        names_c = [p for p in CANDIDATE_PARAMETERS[c] if p not in NUISANCE]
+        cols = [names.index(p) for p in names_c]
         S = Jm[:, cols]
         U = S - Qb @ (Qb.T @ S)
         s_full = np.linalg.norm(S, axis=0)
@@ -656,13 +718,13 @@ def rank(E: np.ndarray, J: np.ndarray, names: list[str], base: list[str], candid
         # its null (a fiber compliance, a finite bulk modulus) has a tiny sensitivity there, yet its
         # direction is what the score test needs. The smallest change detectable along it (80 %
         # power, one parameter, linearized) is reported beside.
-        names_c = CANDIDATE_PARAMETERS[c]
         nc1 = _noncentrality(stats.chi2.isf(alpha, 1), 1, power)
         detectable = {pn: float(math.sqrt(nc1) / sp) for pn, sp, f in zip(names_c, s_perp, frac) if f > 1e-6}
         keep = frac >= confound_tol
         confounded = [pn for pn, f in zip(names_c, frac) if f < confound_tol]
         untestable = [pn for pn, k in zip(names_c, keep) if not k]
         Uk = U[:, keep]
+        one_sided = False
         if Uk.shape[1]:
             Qu, Ru = np.linalg.qr(Uk)
             proj = Qu.T @ e
@@ -670,16 +732,25 @@ def rank(E: np.ndarray, J: np.ndarray, names: list[str], base: list[str], candid
             qk = Uk.shape[1]
             p = float(stats.chi2.sf(lm, qk))
             bases[c] = Qu
+            tested = [pn for pn, k in zip(names_c, keep) if k]
+            co = COORDINATES[tested[0]]
+            if qk == 1 and co.transform == "linear" and co.null is not None and co.null == co.low:
+                # a null on the edge of the admissible range (a density, a relaxation fraction g1 >= 0):
+                # the one-sided score test, significant only when the data pull into the range
+                one_sided = True
+                p = 0.5 * p if float(Uk[:, 0] @ e) > 0 else 1.0 - 0.5 * p
         else:
             lm, p, qk = 0.0, 1.0, 0
         rows.append({"name": c, "parameters": list(CANDIDATE_PARAMETERS[c]), "score": lm, "dof": qk, "p_value": p,
+                     "one_sided": one_sided,
+                     "nuisance_parameters": [pn for pn in CANDIDATE_PARAMETERS[c] if pn in NUISANCE],
                      "explained_fraction": float(min(lm / excess, 1.0)) if lm > 0 else 0.0,
                      "confounded_with": (base if confounded else []),
                      "confounded_parameters": confounded, "untestable_parameters": untestable,
                      "tested_parameters": [pn for pn, k in zip(names_c, keep) if k],
                      "detectable_change": detectable,
                      "projected_fraction": {pn: float(a / max(b, 1e-300)) for pn, a, b in
-                                            zip(CANDIDATE_PARAMETERS[c], s_perp, s_full)}})
+                                            zip(names_c, s_perp, s_full)}})
     # groups: candidates whose projected sensitivity spaces nearly coincide
     for r in rows:
         r["group"] = [r["name"]]
@@ -798,6 +869,7 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
     # 3./4. refit and decide
     base_report = _fit_report(base, white, fit_frames, held, 1)
     tried, decision, accepted = [], "none", None
+    rival_solves, history_verdict = 0, None
     if where["detected"]:
         decision = "unexplained"
         order = [r for r in ranking if r["significant"] and r["dof"] > 0]
@@ -808,10 +880,14 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
         def refit(combo, left):
             bar.phase(f"refitting with {' + '.join(combo)}", left * (bar.FIT_SOLVES + 2))
             phys = ActuatorPhysics(rec, combo, resolution, load_steps, cache)
-            free = ["C10"] + [p for c in combo for p in next(r for r in ranking if r["name"] == c)["tested_parameters"]]
+            rows = [next(r for r in ranking if r["name"] == c) for c in combo]
+            free = ["C10"] + [p for r in rows for p in r["tested_parameters"] + r["nuisance_parameters"]]
             added = [p for p in free if p != "C10"]
-            z0, scan_solves, scan = scan_start(phys, white, free, added, phys.null_point(c10), fit_frames,
-                                               progress=bar.tick)
+            if set(added) <= set(LOAD_MAP_ONLY):
+                z0, scan_solves, scan = load_map_start(phys, white, free, added, phys.null_point(c10), fit_frames)
+            else:
+                z0, scan_solves, scan = scan_start(phys, white, free, added, phys.null_point(c10), fit_frames,
+                                                   progress=bar.tick)
             ext = gauss_newton(phys, white, free, z0, fit_frames, progress=bar.tick)
             ext.solves += scan_solves
             rep = _fit_report(ext, white, fit_frames, held, len(free))
@@ -839,17 +915,54 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
             for combo in pair:
                 refit(combo, 1)
         decision, best = decide(tried, ranking, evidence_threshold)
+        rival = [RIVALS[c] for c in (best["candidates"] if best is not None else ()) if c in RIVALS]
+        if rival:
+            # a creeping body and a cavity pressure lagging its sensor make the same loop once the lag
+            # is shorter than the frame spacing: the body's physics is named only if it beats the lag
+            # decisively
+            bar.phase(f"fitting the rival of {' + '.join(best['candidates'])}: {rival[0]}", bar.FIT_SOLVES + 2)
+            phys = ActuatorPhysics(rec, (rival[0],), resolution, load_steps, cache)
+            free = ["C10"] + list(CANDIDATE_PARAMETERS[rival[0]])
+            z0, _, _ = load_map_start(phys, white, free, free[1:], phys.null_point(c10), fit_frames)
+            rfit = gauss_newton(phys, white, free, z0, fit_frames, progress=bar.tick)
+            rrep = _fit_report(rfit, white, fit_frames, held, len(free))
+            rival_solves += rfit.solves
+            margin = best["fit"]["log_evidence"] - rrep["log_evidence"]
+            best["rival"] = {"name": rival[0], "fit": rrep, "evidence_margin": margin}
+            if margin <= evidence_threshold:
+                best["chosen"] = False
+                best["partial"] = True
+                history_verdict = {
+                    "kind": "history-dependent",
+                    "meaning": ("a creeping body (viscoelasticity) or a cavity pressure lagging its sensor: the "
+                                f"recording cannot tell them apart (log evidence {margin:+.1f} for the creep); a hold "
+                                "at constant pressure would (a body creeps on, a lagging pressure settles)")
+                    if margin > -evidence_threshold else
+                    ("the cavity's pressure lags the recorded one (by "
+                     f"{rfit.z['pressure_lag']:.3g} of the recording's duration), which explains the recording "
+                     f"better than a creeping body (log evidence {-margin:+.1f})"),
+                    "possible_causes": ["viscoelasticity", "a time lag between the pressure sensor and the cavity"]
+                    if margin > -evidence_threshold else ["a time lag between the pressure sensor and the cavity"]}
+                decision, best = "unexplained", None
         if best is not None and loop["detected"]:
-            # no term of the library makes a loop: what a candidate explained is part of the story only
-            best["chosen"] = False
-            best["partial"] = True
-            decision, best = "unexplained", None
+            # a loop is explained only by history-dependent physics, and only if none is left in the
+            # extended model's residual (the same path-independence test on recording - model)
+            history = set(best["candidates"]) & set(HISTORY_DEPENDENT_CANDIDATES)
+            ext = fits[tuple(best["candidates"])][0]
+            left = (hysteresis(replace(rec, Z=rec.Z - ext.evaluation.Y), white, alpha / 4,
+                               _pressure_direction(base_phys, base.z)) if history else None)
+            best["loop_left_in_residual"] = left
+            if not history or left["detected"]:
+                # what the candidate explained is part of the story only
+                best["chosen"] = False
+                best["partial"] = True
+                decision, best = "unexplained", None
         if best is not None:
             combo = tuple(best["candidates"])
             accepted = (combo, *fits[combo])
     bar.close()
     fit_after = accepted[2] if accepted else base_report
-    fe_solves = start_solves + base.solves + 1 + sum(t["fit"]["solves"] for t in tried)
+    fe_solves = start_solves + base.solves + 1 + sum(t["fit"]["solves"] for t in tried) + rival_solves
     out = {
         "recording": rec.source,
         "frames": int(K), "points": int(rec.n_points), "observations": int(np.isfinite(rec.Z).sum()),
@@ -865,9 +978,8 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
         "ranking": ranking,
         "tried": tried,
         "decision": decision,
-        "missing_physics": (loop["physics"] if loop["detected"] else
-                            {"kind": "candidate", "name": decision} if decision not in ("none", "unexplained") else
-                            {"kind": decision}),
+        "missing_physics": ({"kind": "candidate", "name": decision} if decision not in ("none", "unexplained") else
+                            history_verdict or (loop["physics"] if loop["detected"] else {"kind": decision})),
         "parameters": {"base": base_report["parameters"], "extended": accepted[2]["parameters"] if accepted else None},
         "fit_before": base_report,
         "fit_after": fit_after,
@@ -937,7 +1049,7 @@ def _acceptance(fit: Fit, rep: dict, base_rep: dict, combo, threshold: float, al
     away, inside = True, True
     for c in combo:
         for p in CANDIDATE_PARAMETERS[c]:
-            if p not in free:
+            if p not in free or p in NUISANCE:  # a nuisance (tau1) has no null of its own
                 continue
             co = COORDINATES[p]
             null = null_coordinate(p, math.exp(fit.z["C10"]))

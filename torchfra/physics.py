@@ -27,7 +27,16 @@ c_n, c_t (mm^3/N)  linear    N(0, 2^2), >= 0                  0 (clamp)         
 pressure_gain      linear    N(1, 0.2^2), > 0                 1                       pressure_sensor
 pressure_offset    linear    N(0, 0.003^2) MPa                0                       pressure_sensor
 delta_y (mm)       linear    N(0, 0.4^2), in [-1, 0.5]        0                       cavity_offset
+g1 (1)             linear    N(0, 0.3^2), in [0, 0.95]        0                       viscoelasticity
+tau1 (duration)    log       log tau1 ~ N(log 0.1, 1.5^2)     (none: see below)       viscoelasticity
+pressure_lag       linear    N(0, 0.05^2), in [-0.2, 0.2]     0                       (viscoelasticity's rival)
 =================  ========  ===============================  ======================  =============
+
+Viscoelasticity (:mod:`torchfra.history`) acts on the frame-to-load map only, like the pressure
+sensor: the body creeps, and each frame is read off the relaxed (elastic) model at its effective
+load level. Its parameters need no FE solve of their own (solves are keyed by the parameters the FE
+model sees). ``tau1`` has no null: at ``g1 = 0`` it has no effect, so the score test of the
+candidate is the one of ``g1`` at the prior's ``tau1`` (:data:`NUISANCE`), and a refit frees both.
 
 A compliant base is evaluated at c = 1e-4 mm^3/N in place of its null (the clamp has no spring
 dofs): the base then moves by ~1e-6 mm, far below any DIC noise.
@@ -46,6 +55,7 @@ import torch
 from . import fem
 from .fem.sensitivity import sensitivities
 from .geometry.actuator import CAVITY_OFFSET, ActuatorGeometry, build_actuator_model
+from .history import G1, LAG, TAU1, creep_load, delayed_load, normalized_time
 from .observe import ObservationError, ObservationOperator, visible_faces
 from .recordings import Recording, RecordingError
 
@@ -106,13 +116,25 @@ COORDINATES = {
         Coordinate("pressure_gain", "1", "linear", 1.0, 0.2, 0.2, 5.0, 1.0, "pressure_sensor"),
         Coordinate("pressure_offset", "MPa", "linear", 0.0, 0.003, -0.02, 0.02, 0.0, "pressure_sensor"),
         Coordinate("delta_y", "mm", "linear", 0.0, 0.4, CAVITY_OFFSET.low, CAVITY_OFFSET.high, 0.0, "cavity_offset"),
+        Coordinate("g1", G1.unit, "linear", 0.0, 0.3, G1.low, G1.high, 0.0, "viscoelasticity"),
+        Coordinate("tau1", TAU1.unit, "log", math.log(0.1), 1.5, TAU1.low, TAU1.high, 0.1, "viscoelasticity"),
+        Coordinate("pressure_lag", LAG.unit, "linear", 0.0, 0.05, LAG.low, LAG.high, 0.0, "pressure_lag"),
     )
 }
 CANDIDATE_PARAMETERS = {
     "mooney_rivlin": ("C01",), "compressibility": ("D1",), "fiber_stiffness": ("E_fiber",),
     "gravity": ("density",), "compliant_base": ("c_n", "c_t"), "pressure_sensor": ("pressure_gain", "pressure_offset"),
-    "cavity_offset": ("delta_y",),
+    "cavity_offset": ("delta_y",), "viscoelasticity": ("g1", "tau1"), "pressure_lag": ("pressure_lag",),
 }
+# parameters that only act through the frame-to-load map: no FE solve depends on them
+LOAD_MAP_ONLY = ("g1", "tau1", "pressure_lag")
+# parameters identified only away from another's null (tau1 only once g1 != 0): never score-tested,
+# held at their prior mean (the value in COORDINATES' null) by the score test, freed in a refit
+NUISANCE = {"tau1": "g1"}
+HISTORY_DEPENDENT_CANDIDATES = ("viscoelasticity", "pressure_lag")
+# not physics of the body but its rival: a cavity pressure lagging the sensor makes viscoelasticity's
+# loop (history.delayed_load); fitted beside it, never named as a discovery
+RIVALS = {"viscoelasticity": "pressure_lag"}
 GRAVITY_DIRECTION = (0.0, -1.0, 0.0)  # the actuator lies on its side, bending in the camera's plane
 
 
@@ -171,6 +193,11 @@ class ActuatorPhysics:
         self.W = op.weights.tocsr()[:, :self.mesh.n_nodes] if op.weights.shape[1] > self.mesh.n_nodes else op.weights.tocsr()
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self.names = ["C10"] + [p for c in self.candidates for p in CANDIDATE_PARAMETERS[c]]
+        # what the FE model sees: solves are keyed and differentiated by these alone, so a candidate
+        # on the frame-to-load map (viscoelasticity) shares the base model's solves
+        self.fe_names = [n for n in self.names if n not in LOAD_MAP_ONLY]
+        self.fe_candidates = tuple(c for c in self.candidates if c not in HISTORY_DEPENDENT_CANDIDATES)
+        self._memo: dict[str, tuple] = {}
         self.steps = np.arange(1, self.load_steps + 1) / self.load_steps
 
     # -- parameters --------------------------------------------------------------------------------
@@ -215,18 +242,34 @@ class ActuatorPhysics:
         p = torch.as_tensor(self.rec.pressure, dtype=torch.float64)
         g = nat.get("pressure_gain", torch.ones(1, dtype=torch.float64))
         o = nat.get("pressure_offset", torch.zeros(1, dtype=torch.float64))
-        return (g * p + o) / self._pressure_scale(nat)
+        lam = (g * p + o) / self._pressure_scale(nat)
+        if "pressure_lag" in self.candidates:
+            lam = delayed_load(lam, normalized_time(self.rec.times), nat["pressure_lag"])
+        if "viscoelasticity" in self.candidates:
+            lam = creep_load(lam, normalized_time(self.rec.times), nat["g1"], nat["tau1"])
+        return lam
 
     # -- evaluation ----------------------------------------------------------------------------------
     def _key(self, z: dict[str, float]) -> str:
-        desc = {"resolution": self.resolution, "candidates": self.candidates, "steps": self.load_steps,
+        desc = {"resolution": self.resolution, "candidates": self.fe_candidates, "steps": self.load_steps,
                 "pmax": float(np.max(self.rec.pressure)), "newton": self.newton,
                 "z": {k: float(f"{v:.15e}") for k, v in sorted(z.items())}}
         return hashlib.sha256(json.dumps(desc, sort_keys=True).encode()).hexdigest()[:20]
 
     def _solve_nodal(self, z: dict[str, float]):
-        """u and du/dlambda at lambda = 0, steps (S+1, n, 3) and du/dz (S+1, n, 3, d); iterations."""
+        """u and du/dlambda at lambda = 0, steps (S+1, n, 3) and du/dz (S+1, n, 3, d) for ``fe_names``;
+        iterations. Solves are kept in memory (the last few) and in ``cache_dir``."""
+        z = {n: float(z[n]) for n in self.fe_names}
         key = self._key(z)
+        if key in self._memo:
+            return (*self._memo[key][:-1], True)
+        out = self._solve_nodal_uncached(z, key)
+        if len(self._memo) >= 4:
+            self._memo.pop(next(iter(self._memo)))
+        self._memo[key] = out
+        return out
+
+    def _solve_nodal_uncached(self, z: dict[str, float], key: str):
         path = None if self.cache_dir is None else self.cache_dir / f"solve_{key}.npz"
         if path is not None and path.exists():
             with np.load(path, allow_pickle=False) as f:
@@ -235,7 +278,7 @@ class ActuatorPhysics:
         params = self.params_of(zt)
         sol = fem.solve(self.model, params, self.steps, fem.NewtonOptions(**self.newton))
         n = self.mesh.n_nodes
-        d = len(self.names)
+        d = len(self.fe_names)
         ok = bool(sol.converged[0])
         u = np.zeros((self.load_steps + 1, n, 3))
         du_dlam = np.zeros_like(u)
@@ -247,7 +290,7 @@ class ActuatorPhysics:
                                 torch.cat([torch.zeros_like(sol.a[:, :1]), sol.a], 1), sol.status,
                                 sol.load_reached, sol.iterations, sol.increments, sol.cutbacks,
                                 sol.last_residual, sol.residual_history)
-            S = sensitivities(self.model, self.params_of, zt, sol0, names=self.names)
+            S = sensitivities(self.model, self.params_of, zt, sol0, names=self.fe_names)
             u = sol0.u[0, :, :n].numpy()
             du_dlam = S.du_dlambda[0, :, :n].numpy()
             du = S.du[0, :, :n].numpy()
@@ -267,7 +310,7 @@ class ActuatorPhysics:
     def at_steps(self, z: dict[str, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """``(load factors (S+1,), Y (S+1, P, 2), dY/dlambda)`` at the solve's own load steps (lambda = 0
         included), None if the solve failed."""
-        u, du_dlam, _, ok, _, _ = self._solve_nodal({n: float(z[n]) for n in self.names})
+        u, du_dlam, _, ok, _, _ = self._solve_nodal(z)
         if not ok:
             return None
         return np.concatenate([[0.0], self.steps]), self._observed(u), self._observed(du_dlam)
@@ -286,7 +329,9 @@ class ActuatorPhysics:
         if not ok:
             return Evaluation(z, list(self.names), np.full((K, P, 2), np.nan), np.full((K, P, 2, d), np.nan), False,
                               its, time.perf_counter() - t0, reused)
-        Ys, dYs, Js = self._observed(u), self._observed(du_dlam), self._observed(du)
+        Ys, dYs, Jfe = self._observed(u), self._observed(du_dlam), self._observed(du)
+        Js = np.zeros(Jfe.shape[:-1] + (d,))
+        Js[..., [self.names.index(n) for n in self.fe_names]] = Jfe
         zt = {k: torch.tensor([v], dtype=torch.float64) for k, v in z.items()}
         lam = self.frame_loads(zt).numpy()
         dlam = np.stack([_derivative(self.frame_loads, zt, n) for n in self.names], axis=1)  # (K, d)

@@ -31,7 +31,9 @@ from pathlib import Path
 import torch
 
 KINDS = ("lognormal", "normal", "uniform")
-SENSOR = ("pressure_gain", "pressure_offset")  # act on the frame-to-load map, not on the FE solve
+# parameters that act on the frames' load factors, not on the FE solve (the candidate that carries them)
+SENSOR = {"pressure_gain": "pressure_sensor", "pressure_offset": "pressure_sensor", "g1": "viscoelasticity",
+          "tau1": "viscoelasticity", "pressure_lag": "viscoelasticity's rival"}
 TAIL = 4.0  # a normal prior's mean +- TAIL stds (and a lognormal's matching quantiles) must be admissible
 
 
@@ -170,8 +172,8 @@ def parse_prior(text: str) -> Prior:
                          f"({'its bounds' if kind == 'uniform' else f'mean +- {TAIL:g} stds'}); narrow it or "
                          "choose a prior that stays in the range (lognormal for a positive scale, uniform for a bounded one)")
     if name in SENSOR:
-        raise PriorError(f"{where}: {name} acts on the recorded pressure, not on the FE solve of a forward ensemble; "
-                         "it is estimated by scripts/diagnose.py (candidate pressure_sensor)")
+        raise PriorError(f"{where}: {name} acts on the recorded pressure (the frames' load factors), not on the FE "
+                         f"solve of a forward ensemble; it is estimated by scripts/diagnose.py (candidate {SENSOR[name]})")
     return prior
 
 
@@ -186,8 +188,8 @@ def parse_fixed(text: str, flag: str = "--fixed") -> tuple[str, float]:
     if not info.low <= v <= info.high or (info.transform == "log" and v <= 0):
         raise PriorError(f"{where}: {name} must lie in [{info.low:g}, {info.high:g}] {info.unit}")
     if name in SENSOR:
-        raise PriorError(f"{where}: {name} acts on the recorded pressure, not on the FE solve; "
-                         "see scripts/diagnose.py (candidate pressure_sensor)")
+        raise PriorError(f"{where}: {name} acts on the recorded pressure (the frames' load factors), not on the FE "
+                         f"solve; see scripts/diagnose.py (candidate {SENSOR[name]})")
     return name, v
 
 

@@ -17,6 +17,11 @@ Effects (``EFFECTS``; size k = 1, 2, 3 picks the tabled value of the knob, size 
   ``fem.sensor``). The recording is made at the true pressures and stores the recorded ones.
   ``cavity_offset`` (delta_y, mm: the cavity sits off its nominal axis, a harmonic morph of the
   generating mesh; negative toward the body's centre, thickening the 1 mm wall on the +y side).
+  ``viscoelasticity`` (g1, a loading-unloading trace: the relaxed body at the creeping load level
+  of ``history.creep_load`` with tau1 = ``VISCO_TAU1`` of the trace's duration, the body at rest at
+  t = 0, before the first frame; the diagnosis takes it at rest at the first frame and measures
+  tau1 from there: the time maps differ). The generation solves the relaxed FE model at the creeping
+  loads, as the candidate does: no element kernel with history variables is in the project yet.
 - outside the library (the right answer is "unexplained"): ``stiff_base_region`` (C10 times the knob
   in the elements whose centroid lies below z = 10 mm, the base endcap: a second body whose material
   carries its own parameter names, ``RenamedMaterial``), ``fiber_debond`` (a stretch of both helices
@@ -39,6 +44,7 @@ gravity              density (t/mm^3)    1.2e-11, 3e-11, 1e-10   5.6, 13.9, 46.1
 compliant_base       c (mm^3/N)          1000, 2500, 25000       2.0, 2.6, 3.0
 pressure_sensor      offset (MPa)        1.5e-4, 5e-4, 1.5e-3    4.9, 16.5, 50.0
 cavity_offset        delta_y (mm)        -0.25, -0.5, -1.0       6.8, 14.6, 33.2
+viscoelasticity      g1 (1)              0.05, 0.15, 0.4         6.1, 19.9, 66.4
 stiff_base_region    C10 factor          1.2, 2, 6               5.9, 18.4, 34.7
 fiber_debond         length (mm)         12, 20, 28              6.1, 11.1, 21.2
 sensor_lag           tau (1)             0.004, 0.012, 0.035     5.7, 17.1, 49.9
@@ -80,10 +86,12 @@ import torch
 from . import fem
 from .fem.materials import Material, ParameterError
 from .geometry.actuator import ActuatorGeometry, build_actuator_model
+from .history import creep_load
 from .observe import ObservationOperator, frame_times, regular_grid, visible_faces
 from .recordings import Recording
 
 PRESSURE_MAX = 0.022  # MPa, the largest recorded pressure (paper §4)
+VISCO_TAU1 = 0.1  # relaxation time of the viscoelastic scenarios, in units of the trace's duration
 BULK_RATIO = 1000.0  # K / mu of the base model: D1 = 1 / (BULK_RATIO C10)
 E_FIBER = 31000.0  # MPa
 BASE_REGION_HEIGHT = 10.0  # mm: stiff_base_region covers the elements with centroid z below this
@@ -130,6 +138,8 @@ EFFECTS = {e.name: e for e in (
     Effect("pressure_sensor", "library", "pressure_offset", "MPa", 0.0, 0.0, PRESSURE_MAX,
            (0.00015, 0.0005, 0.0015), (4.93, 16.49, 49.99)),
     Effect("cavity_offset", "library", "delta_y", "mm", 0.0, -1.0, 0.5, (-0.25, -0.5, -1.0), (6.84, 14.55, 33.19)),
+    Effect("viscoelasticity", "library", "g1", "1", 0.0, 0.0, 0.95, (0.05, 0.15, 0.4), (6.11, 19.85, 66.35),
+           trace="cycle"),
     Effect("stiff_base_region", "outside", "C10_factor", "1", 1.0, 1.0, math.inf,
            (1.2, 2.0, 6.0), (5.87, 18.4, 34.72)),
     Effect("fiber_debond", "outside", "length", "mm", 0.0, 0.0, 40.0, (12.0, 20.0, 28.0), (6.13, 11.09, 21.19)),
@@ -288,6 +298,14 @@ def true_pressure(effect: str, value: float, trace: str, times, pressure: float 
         return SENSOR_GAIN * recorded + value
     if effect == "sensor_lag":
         return pressure * _trace_shape(trace, np.maximum(np.asarray(times) - value, 0.0))
+    if effect == "viscoelasticity":
+        # the relaxed body's load level: the creep of the recorded trace, the body at rest at t = 0
+        # (before the first frame), relaxation time VISCO_TAU1 of the time from 0 to 1
+        t = np.concatenate([[0.0], np.asarray(times, dtype=np.float64)])
+        lam = torch.as_tensor(_trace_shape(trace, t), dtype=torch.float64)
+        mu = creep_load(lam, t, torch.tensor(float(value), dtype=torch.float64),
+                        torch.tensor(VISCO_TAU1, dtype=torch.float64))
+        return pressure * mu.numpy()[1:]
     return recorded
 
 
@@ -441,6 +459,8 @@ def make_scenario(effect: str, size, truth_c10: float = 0.0062, noise: float = 1
     if effect in ("pressure_sensor", "sensor_lag"):
         parameters.update({"pressure_gain": SENSOR_GAIN, "pressure_offset": value} if effect == "pressure_sensor"
                           else {"tau": value})
+    if effect == "viscoelasticity":
+        parameters.update({"g1": value, "tau1": VISCO_TAU1})
     meta = {
         "effect": effect, "kind": e.kind, "expected": e.expected, "size": size, "knob": e.parameter,
         "value": value, "unit": e.unit, "parameters": parameters, "truth_c10": truth_c10, "snr": snr,
