@@ -165,13 +165,15 @@ def triangle(t):
     return np.clip(1 - np.abs(2 * np.asarray(t) - 1), 0, 1)
 
 
-def test_stand_in_diagnosis_names_a_creeping_body(stand_in):
+def test_stand_in_diagnosis_names_a_creeping_body(stand_in, tmp_path):
     """g1 = 0.3, tau1 = 0.1: viscoelasticity named, beating the lagging-pressure rival decisively, no
     loop left, g1 and tau1 within 3 std of the generating values."""
     from torchfra.discovery import diagnose
 
     rec = stand_in(lambda t: triangle_creep(t, 0.3, 0.1), triangle, seed=1)
-    out = diagnose(rec, noise=0.3, correlation=0.0, candidates=["viscoelasticity"], progress=False, load_steps=10)
+    out = diagnose(rec, noise=0.3, correlation=0.0, candidates=["viscoelasticity"], progress=False, load_steps=10,
+                   run_dir=tmp_path)
+    assert (tmp_path / "hysteresis.png").exists() and (tmp_path / "diagnosis.json").exists()
     assert out["hysteresis"]["detected"] and out["hysteresis"]["sense"] == "lags"
     visco = out["ranking"][0]
     assert visco["one_sided"] and visco["significant"] and visco["nuisance_parameters"] == ["tau1"]

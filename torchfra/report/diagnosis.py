@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 
 from .tensorboard import log_figure, open_writer
 
@@ -81,20 +82,36 @@ def write_figures(run_dir: Path, rec, out: dict, base, extended, sigma: float, w
 
         loop = out.get("hysteresis", {})
         if loop.get("applicable"):
-            ids = list(rec.point_ids)
-            q = ids.index(loop["worst_points"][0]["point"])
+            # the whole face on one axis: the recording projected on the base model's deflection at the
+            # largest pressure (a unit vector over every point and component observed in every frame),
+            # so the noise of one point (sigma) does not hide a loop spread over all of them
             up = [list(rec.frames).index(f) for f in loop["frames_loading"]]
             down = [list(rec.frames).index(f) for f in loop["frames_unloading"]]
-            fig = Figure(figsize=(7, 4))
-            axs = fig.subplots(1, 2)
-            for c, ax in enumerate(axs):
-                ax.plot(rec.pressure[up], rec.Z[up, q, c], "C0o-", ms=3, label="loading")
-                ax.plot(rec.pressure[down], rec.Z[down, q, c], "C3s-", ms=3, label="unloading")
-                ax.set_xlabel("pressure (MPa)")
-                ax.set_ylabel(f"u{'yz'[c]} (mm) at point {rec.point_ids[q]}")
-            verdict = "hysteresis: history-dependent physics" if loop["detected"] else "no significant loop"
-            axs[0].set_title(verdict, fontsize=9)
-            axs[0].legend(fontsize=7)
+            frames = up + down
+            common = np.isfinite(rec.Z[frames]).all(axis=0)
+            mode = np.where(common, base.evaluation.Y[int(np.argmax(rec.pressure))], 0.0)
+            mode = mode / max(float(np.linalg.norm(mode)), 1e-300)
+
+            def amplitude(Y):
+                return np.einsum("kpc,pc->k", np.where(common[None], Y, 0.0), mode)
+
+            fig = Figure(figsize=(5.5, 4))
+            ax = fig.subplots()
+            amp = amplitude(rec.Z)
+            ax.plot(rec.pressure[up], amp[up], "C0o", ms=4, label="recorded, loading")
+            ax.plot(rec.pressure[down], amp[down], "C3s", ms=4, label="recorded, unloading")
+            models = [("base", base)] + ([(out["decision"], extended)] if extended is not None else [])
+            for (name, fit), style in zip(models, ("k-", "C2--")):
+                a = amplitude(fit.evaluation.Y)
+                ax.plot(rec.pressure[up + down], a[up + down], style, lw=1, label=f"model: {name}")
+            ax.set_xlabel("recorded pressure (MPa)")
+            ax.xaxis.set_major_locator(MaxNLocator(5))
+            ax.set_ylabel(f"displacement along the deflection mode (mm, noise {sigma:g})")
+            sense = {"lags": "the body lags its load", "leads": "the body leads the recorded pressure"}
+            verdict = (f"hysteresis: {sense.get(loop.get('sense'), 'history-dependent physics')}"
+                       if loop["detected"] else "no significant loop")
+            ax.set_title(verdict, fontsize=9)
+            ax.legend(fontsize=7)
             log_figure(writer, "diagnosis/hysteresis", fig, run_dir / "hysteresis.png")
 
         if extended is not None:
