@@ -270,3 +270,19 @@ def test_forward_ensembles_refuse_load_map_parameters(text):
         parse_prior(text)
     with pytest.raises(PriorError, match="not on the FE solve"):
         parse_fixed(text.split("=")[0] + "=0.05")
+
+
+def test_stand_in_ramp_does_not_test_creep(stand_in):
+    """On a load that only rises, creep is a warp of the load axis (confounded with the material's own
+    nonlinearity): the candidate is reported not testable, never ranked or refitted, even when the
+    recording does creep (g1 = 0.3)."""
+    from torchfra.discovery import diagnose, history_identifiable
+
+    rec = stand_in(lambda t: t - 0.3 * (0.1 / 0.7) * (1 - np.exp(-t * 7)), lambda t: np.asarray(t), seed=5)
+    out = diagnose(rec, noise=0.3, correlation=0.0, candidates=["viscoelasticity"], progress=False, load_steps=10)
+    assert "viscoelasticity" in out["not_testable"] and not out["ranking"] and not out["tried"]
+    assert out["decision"] in ("none", "unexplained")
+    t = np.linspace(0, 1, 11)
+    hold = np.minimum(t, 0.5)  # rises, then holds at half the largest pressure
+    assert history_identifiable(Recording(np.arange(11), t, hold, np.arange(1), np.zeros((1, 3)), np.zeros((11, 1, 2))))
+    assert not history_identifiable(Recording(np.arange(11), t, t, np.arange(1), np.zeros((1, 3)), np.zeros((11, 1, 2))))

@@ -684,6 +684,19 @@ def hysteresis(rec: Recording, white: Whitener, alpha: float, direction: np.ndar
     return out
 
 
+def history_identifiable(rec: Recording, hold_fraction: float = 0.1) -> bool:
+    """Whether a recording can show history-dependent physics apart from a load-axis warp: it comes
+    back down from a pressure (a drop of more than 1 % of the largest), or holds a pressure above
+    ``hold_fraction`` of the largest over two frames or more (a change below 0.1 % of it)."""
+    p = np.asarray(rec.pressure, dtype=np.float64)
+    top = float(np.max(np.abs(p))) if p.size else 0.0
+    if top <= 0 or p.size < 3:
+        return False
+    drops = np.maximum.accumulate(p) - p > 0.01 * top
+    hold = (np.abs(np.diff(p)) < 1e-3 * top) & (p[1:] > hold_fraction * top)
+    return bool(drops.any() or hold.any())
+
+
 # -- rank -----------------------------------------------------------------------------------------------
 
 def rank(E: np.ndarray, J: np.ndarray, names: list[str], base: list[str], candidates, frames: np.ndarray,
@@ -853,6 +866,15 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
     where["detected"] = where["detected"] or loop["detected"]
 
     # 2. rank: sensitivities of every candidate at the calibrated point, candidates at their null
+    not_testable = {}
+    if set(cands) & set(HISTORY_DEPENDENT_CANDIDATES) and not history_identifiable(rec):
+        # on a load that only rises, each load level is met once: creep only warps the load axis,
+        # which the material's own nonlinearity can do as well (a surrogate); unloading or a hold
+        # at constant pressure is what shows a history
+        for c in set(cands) & set(HISTORY_DEPENDENT_CANDIDATES):
+            not_testable[c] = ("the pressure only rises, without a hold: creep is a warp of the load axis there, "
+                               "confounded with the material's nonlinearity; record unloading or a hold to test it")
+        cands = tuple(c for c in cands if c not in not_testable)
     bar.phase("sensitivities of every candidate at the calibrated point", 1)
     full = ActuatorPhysics(rec, cands, resolution, load_steps, cache)
     ev_full = full.observe(full.null_point(c10))
@@ -976,6 +998,7 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
         "onset": where["onset"],
         "hysteresis": loop,
         "ranking": ranking,
+        "not_testable": not_testable,
         "tried": tried,
         "decision": decision,
         "missing_physics": ({"kind": "candidate", "name": decision} if decision not in ("none", "unexplained") else
