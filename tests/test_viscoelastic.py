@@ -66,6 +66,9 @@ def test_null_and_limits():
     # a very fast one: the relaxed body
     assert np.abs(_mu(lam, t, 0.3, 1e-5) - lam).max() < 1e-4
     assert np.array_equal(normalized_time([2.0, 3.0, 6.0]), [0.0, 0.25, 1.0])
+    for g1, tau1 in ((float("nan"), 0.1), (1.0, 0.1), (-0.1, 0.1), (0.3, 0.0)):
+        with pytest.raises(ValueError, match="g1"):
+            creep_load(torch.zeros(3, dtype=D), t[:3], torch.tensor(g1), torch.tensor(tau1))
     with pytest.raises(ValueError, match="strictly increasing"):
         creep_load(torch.zeros(3, dtype=D), np.array([0.0, 0.5, 0.5]), torch.tensor(0.1), torch.tensor(0.1))
 

@@ -72,7 +72,10 @@ def creep_load(lam: torch.Tensor, t: np.ndarray, g1: torch.Tensor, tau1: torch.T
     if t.shape != tuple(lam.shape) or (t.size > 1 and not np.all(np.diff(t) > 0)):
         raise ValueError("creep_load needs one strictly increasing time per load level")
     g1 = torch.as_tensor(g1).to(lam.dtype).reshape(())
-    tau_c = torch.as_tensor(tau1).to(lam.dtype).reshape(()) / (1.0 - g1)
+    tau1 = torch.as_tensor(tau1).to(lam.dtype).reshape(())
+    if not (0.0 <= float(g1.detach()) < 1.0 and float(tau1.detach()) > 0.0):
+        raise ValueError(f"creep_load needs 0 <= g1 < 1 and tau1 > 0, got g1 = {float(g1.detach())!r}, tau1 = {float(tau1.detach())!r}")
+    tau_c = tau1 / (1.0 - g1)
     dt = torch.as_tensor(np.diff(t), dtype=lam.dtype)
     decay = torch.exp(-dt / tau_c)
     gain = -torch.expm1(-dt / tau_c) * tau_c / dt  # tau_c (1 - exp(-dt / tau_c)) / dt
