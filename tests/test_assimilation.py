@@ -130,6 +130,22 @@ def test_grid_posterior_equals_kalman_closed_form():
     assert abs(post.log_evidence[-1] - ref) < 1e-6
 
 
+def test_sweep_forecaster_reads_one_frame_exactly_as_the_whole_spline():
+    """The restart filter's spline forecast of frame k evaluates that frame's coefficients only (its
+    cost per frame does not grow with the frames): equal to scipy's CubicSpline at every frame, inside
+    the sweep and beyond both ends (extrapolation by the end cubics), to round-off."""
+    rng = np.random.default_rng(3)
+    q = np.sort(rng.uniform(-1, 1, 12))
+    Y = np.exp(-q)[:, None, None, None] * rng.normal(size=(1, 7, 5, 2))
+    sweep = SweepMap(q, Y)
+    Q = torch.tensor([[-1.3], [-0.2], [0.0], [0.7], [1.4]], dtype=torch.float64)
+    full = sweep(Q[:, 0].numpy())
+    forecast = sweep.forecaster(np.arange(7)[::-1])
+    for k in range(7):
+        assert sweep.frame(Q[:, 0].numpy(), k).shape == (5, 5, 2)
+        np.testing.assert_allclose(forecast(Q, 6 - k).numpy(), full[:, k], rtol=1e-13, atol=1e-13)
+
+
 def test_polynomial_slave_follows_a_curved_map_where_the_linear_slave_drifts():
     """y = 10 exp(-q) (displacement ~ 1/C10): fitted on a prior of std 0.18 in q, asked at a narrow
     ensemble 1.2 prior stds below the prior mean (the paper's truth sits there). The cubic slave's

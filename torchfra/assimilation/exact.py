@@ -47,17 +47,25 @@ class SweepMap:
         q = np.asarray(q, dtype=np.float64)
         return self._spline(q).reshape(q.shape + self.shape)
 
+    def frame(self, q, k: int) -> np.ndarray:
+        """(G,) -> (G, *shape[1:]): frame ``k`` alone (``self(q)[:, k]``), the piecewise cubic evaluated on
+        that frame's coefficients only, so a filter's cost per frame does not grow with the frames."""
+        q = np.asarray(q, dtype=np.float64).reshape(-1)
+        s = self._spline
+        m = int(np.prod(self.shape[1:]))
+        i = np.clip(np.searchsorted(s.x, q, side="right") - 1, 0, s.x.size - 2)
+        t = (q - s.x[i])[:, None]
+        c = s.c[:, :, k * m:(k + 1) * m]  # (4, S - 1, m) cubic coefficients of frame k
+        y = ((c[0, i] * t + c[1, i]) * t + c[2, i]) * t + c[3, i]
+        return y.reshape((q.size,) + self.shape[1:])
+
     def forecaster(self, frames):
         """``forecast(Q, k)`` for :func:`~torchfra.assimilation.sequential_filter`: the observations
         of frame ``frames[k]`` at each member's log-parameter Q (N, 1), from the spline instead of an
         FE solve. A restart filter driven by it costs no FE solve; its agreement with the FE restart
         filter is as good as the spline's agreement with the FE map (check it on the path taken)."""
         frames = np.asarray(frames)
-
-        def forecast(Q, k):
-            return torch.as_tensor(self(Q[:, 0].numpy())[:, frames[k]])
-
-        return forecast
+        return lambda Q, k: torch.as_tensor(self.frame(Q[:, 0].numpy(), int(frames[k])))
 
     def leave_one_out_error(self) -> float:
         """Largest |error| (units of Y) predicting each interior sweep point from all the others; the
@@ -139,23 +147,13 @@ def grid_posterior(sweep: SweepMap, Z, r, prior_mu: float, prior_sigma: float, n
     for k in frames:
         obs = np.isfinite(Z[k])
         if obs.any():
-            Yk = _frame(sweep, q, k)[:, obs]
+            Yk = sweep.frame(q, k).reshape(q.size, -1)[:, obs]
             res = (Z[k, obs] - Yk) ** 2 / r[k, obs]
             log_num = log_num - 0.5 * (res.sum(axis=1) + np.log(2 * math.pi * r[k, obs]).sum())
         ev = float(logsumexp(log_num + log_w))
         posts.append(log_num - ev)
         evid.append(ev)
     return GridPosterior(q, np.asarray(posts), np.asarray(evid), outside)
-
-
-def _frame(sweep: SweepMap, q: np.ndarray, k: int) -> np.ndarray:
-    """Spline values of frame k only: (G, m). Evaluates the piecewise cubic on that frame's columns."""
-    s = sweep._spline
-    m = int(np.prod(sweep.shape[1:]))
-    i = np.clip(np.searchsorted(s.x, q, side="right") - 1, 0, s.x.size - 2)
-    t = (q - s.x[i])[:, None]
-    c = s.c[:, :, k * m:(k + 1) * m]  # (4, S - 1, m) cubic coefficients of frame k
-    return ((c[0, i] * t + c[1, i]) * t + c[2, i]) * t + c[3, i]
 
 
 EDGE_MASS_LIMIT = 0.01  # posterior probability in the 10 end cells of the grid that flags the prior's edge
