@@ -30,8 +30,9 @@ import torch  # noqa: E402
 
 from torchfra.calibration import (SEED, CalibrationConfig, forward_config, forward_dir, run_calibration,  # noqa: E402
                                   validate_recording)
+from torchfra.cli import add_deck_flags, check_deck_flags  # noqa: E402
 from torchfra.distributed import finish, ranks  # noqa: E402
-from torchfra.forward import run_forward  # noqa: E402
+from torchfra.forward import ForwardConfig, observed_surface, run_forward  # noqa: E402
 from torchfra.io.dic_import import add_arguments, recording_path  # noqa: E402
 from torchfra.priors import ParameterSet, parse_truth, read_parameter_file  # noqa: E402
 from torchfra.report.calibration import write_calibration_outputs  # noqa: E402
@@ -49,7 +50,8 @@ def start_forward_helpers(config: CalibrationConfig, run_dir: Path, n: int) -> l
         return []
     where.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, str(Path(__file__).with_name("forward_uq.py")), "--members", str(fwd.members),
-           "--mesh", str(fwd.resolution), "--seed", str(fwd.seed), "--pressure", repr(fwd.pressure),
+           "--mesh", str(fwd.resolution), "--seed", str(fwd.seed), *([] if fwd.inp else ["--pressure", repr(fwd.pressure)]),
+           *(["--inp", fwd.inp, "--camera", fwd.camera, *(["--face", fwd.face] if fwd.face else [])] if fwd.inp else []),
            "--load-steps", str(fwd.load_steps), "--chunk", str(fwd.chunk), "--threads", str(fwd.threads),
            "--method", fwd.method, *[f"--param={x}" for x in fwd.parameters], *[f"--fixed={x}" for x in fwd.fixed],
            "--runs-dir", str(where.parent), "--out", where.name, "--quiet"]
@@ -113,7 +115,9 @@ def main(argv=None) -> dict:
                    help="processes solving forward-ensemble chunks side by side (one per core); the restart "
                         "filter, which runs after them, uses as many threads")
     add_arguments(p)
+    add_deck_flags(p)
     a = p.parse_args(argv)
+    check_deck_flags(a, "forward_pressure")
     torch.set_num_threads(a.threads)
     torch.set_default_dtype(torch.float64)
     base, prior = _base_config(a)
@@ -121,7 +125,8 @@ def main(argv=None) -> dict:
     if r.parallel:  # torchrun: the ranks share the forward ensemble; rank 0 does everything else
         a.workers = 1
         if r.rank != 0:
-            fwd_only = {"members": a.members, "resolution": a.mesh, "pressure": a.forward_pressure}
+            fwd_only = {"members": a.members, "resolution": a.mesh, "pressure": a.forward_pressure, "inp": a.inp,
+                        "camera": a.camera, "face": a.face}
             config = replace(base, **prior, **{k: v for k, v in fwd_only.items() if v is not None})
             run_forward(forward_config(config), forward_dir(config, a.runs_dir), progress=False)
             return {}
@@ -129,12 +134,16 @@ def main(argv=None) -> dict:
         raise ValueError("--pressure names the trace of a DIC export: give the export with --recording")
     run_dir = Path(a.runs_dir) / (a.name or Path(a.config).stem)
     if a.recording is not None:
-        a.recording = str(recording_path(a.recording, a, run_dir))
+        face = observed_surface(ForwardConfig(inp=a.inp, camera=a.camera, face=a.face or "")) if a.inp else None
+        a.recording = str(recording_path(a.recording, a, run_dir, face))
     truth = {**prior.pop("truth", {}), **parse_truth(a.truth)}
     overrides = {"recording": a.recording, "truth_c10": truth.pop("C10", None), "noise": a.noise, "members": a.members,
                  "resolution": a.mesh, "pressure": a.forward_pressure, "restart_every": a.restart_every,
-                 "coverage_seeds": a.coverage_seeds, "assimilate_every": a.assimilate_every}
+                 "coverage_seeds": a.coverage_seeds, "assimilate_every": a.assimilate_every, "inp": a.inp,
+                 "camera": a.camera, "face": a.face}
     config: CalibrationConfig = replace(base, **prior, **{k: v for k, v in overrides.items() if v is not None})
+    if config.inp:  # the deck is read and checked now; its pressure is the forward ensemble's
+        config = replace(config, pressure=forward_config(config).pressure)
     if truth and config.recording is None:
         config = replace(config, truth=truth)
     elif truth:

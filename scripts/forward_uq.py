@@ -21,7 +21,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from torchfra.distributed import finish, ranks  # noqa: E402
-from torchfra.forward import ForwardConfig, run_forward  # noqa: E402
+from torchfra.cli import add_deck_flags, check_deck_flags  # noqa: E402
+from torchfra.forward import ForwardConfig, run_forward, with_deck  # noqa: E402
 from torchfra.priors import ParameterSet, read_parameter_file  # noqa: E402
 from torchfra.report.forward import write_forward_outputs  # noqa: E402
 
@@ -38,7 +39,8 @@ def main(argv=None) -> dict:
     p.add_argument("--frames", type=int, default=d.frames, help="frames at t = 1/n .. 1 (interpolated)")
     p.add_argument("--chunk", type=int, default=d.chunk, help="members per batched solve and checkpoint")
     p.add_argument("--bulk-ratio", type=float, default=d.bulk_ratio, help="K / mu of every member")
-    p.add_argument("--pressure", type=float, default=d.pressure, help="cavity pressure at t = 1 (MPa)")
+    p.add_argument("--pressure", type=float, default=None, help=f"cavity pressure at t = 1 (MPa; default {d.pressure}, "
+                   "with --inp the deck's)")
     p.add_argument("--threads", type=int, default=d.threads, help="torch CPU threads (recorded)")
     p.add_argument("--integration", choices=["full", "reduced"], default=d.integration,
                    help="Hex20 Gauss rule: full 3x3x3 (default) or the paper's reduced 2x2x2")
@@ -57,8 +59,10 @@ def main(argv=None) -> dict:
     p.add_argument("--newton-budget", type=int, default=d.newton_budget,
                    help="Newton iterations one member may spend (0: no limit); a member that spends them stops, "
                         "flagged as not converged")
+    add_deck_flags(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar (helper processes)")
     a = p.parse_args(argv)
+    check_deck_flags(a)
     if a.config is not None:
         if a.param or a.fixed:
             raise ValueError("give the parameters in the --config file or by --param/--fixed, not both")
@@ -68,10 +72,13 @@ def main(argv=None) -> dict:
         raise ValueError("--fixed needs the uncertain parameters named with --param")
     ParameterSet.parse(a.param, a.fixed) if a.param else None  # each bad entry named before any work
     config = ForwardConfig(members=a.members, resolution=a.mesh, seed=a.seed, load_steps=a.load_steps,
-                           frames=a.frames, chunk=a.chunk, bulk_ratio=a.bulk_ratio, pressure=a.pressure,
+                           frames=a.frames, chunk=a.chunk, bulk_ratio=a.bulk_ratio,
+                           pressure=d.pressure if a.pressure is None else a.pressure, inp=a.inp or "",
+                           camera=a.camera, face=a.face or "",
                            threads=a.threads, integration=a.integration, method=a.method, snapshots=a.snapshots,
                            reduced_tol=a.reduced_tol, parameters=list(a.param), fixed=list(a.fixed),
                            newton_budget=a.newton_budget)
+    config = with_deck(config)  # a deck is read and checked before any work
     run_dir = Path(a.runs_dir) / a.out
     r = ranks()
     out = run_forward(config, run_dir, progress=not a.quiet)

@@ -19,6 +19,8 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from torchfra.calibration import synthetic_recording  # noqa: E402
+from torchfra.cli import add_deck_flags, check_deck_flags  # noqa: E402
+from torchfra.forward import ForwardConfig, read_deck, with_deck  # noqa: E402
 from torchfra.observe import frame_times  # noqa: E402
 from torchfra.priors import parse_fixed  # noqa: E402
 from torchfra.recordings import write_recording  # noqa: E402
@@ -36,20 +38,24 @@ def pressure_trace(frames: int, p_max: float, cycles: int) -> tuple[np.ndarray, 
 
 def main(argv=None) -> Path:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--c10", type=float, default=0.0048, help="C10 of the body (MPa); the paper's truth 0.0048")
+    p.add_argument("--c10", type=float, default=None, help="C10 of the body (MPa); default the paper's truth 0.0048 "
+                   "(with --inp the deck's)")
     p.add_argument("--mesh", type=int, default=1, help="mesh resolution of the FE model")
     p.add_argument("--points", default="nodes", help="'nodes' of the visible face, or a DIC grid spacing in mm")
     p.add_argument("--noise", type=float, default=1.0, help="noise std on each observed component (mm)")
     p.add_argument("--seed", type=int, default=0, help="noise seed")
     p.add_argument("--frames", type=int, default=100)
-    p.add_argument("--pressure", type=float, default=0.022, help="peak cavity pressure (MPa)")
+    p.add_argument("--pressure", type=float, default=None, help="peak cavity pressure (MPa; default 0.022, with --inp "
+                   "the deck's)")
     p.add_argument("--cycles", type=int, default=0, help="loading-unloading cycles (0: one linear ramp)")
     p.add_argument("--value", action="append", default=[], metavar="NAME=VALUE",
                    help="another model parameter at a value (repeatable), e.g. C01=0.001 (Mooney-Rivlin), "
                         "E_fiber=25000, density=1.1e-9 (gravity), D1=0.5; the others keep the base model's")
     p.add_argument("--out", default="runs/recordings/recording.csv", help=".csv or .npz")
     p.add_argument("--threads", type=int, default=1)
+    add_deck_flags(p)
     a = p.parse_args(argv)
+    check_deck_flags(a)
     if Path(a.out).suffix.lower() not in (".csv", ".npz"):
         p.error(f"--out must end in .csv or .npz, got {a.out!r}")
     if a.points != "nodes":
@@ -63,7 +69,19 @@ def main(argv=None) -> Path:
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)  # a bad folder fails now, not after the FE solves
     torch.set_num_threads(a.threads)
     torch.set_default_dtype(torch.float64)
-    times, pressure = pressure_trace(a.frames, a.pressure, a.cycles)
+    if a.inp:  # the user's deck: its own values, those of --value and --c10 replaced, at its pressure
+        fwd = with_deck(ForwardConfig(inp=a.inp, camera=a.camera, face=a.face or "", parameters=["C10=lognormal:1,0.1"],
+                                      fixed=[f"{k}={v!r}" for k, v in values.items()]))
+        c10 = a.c10 if a.c10 is not None else read_deck(a.inp)[1]["C10"]
+        times, pressure = pressure_trace(a.frames, fwd.pressure, a.cycles)
+        rec, _ = synthetic_recording({"C10": c10}, a.mesh, a.points, a.noise, a.seed, times, pressure, progress=True,
+                                     parameters=[f"C10=lognormal:{c10!r},{0.1 * c10!r}"], fixed=list(fwd.fixed),
+                                     deck={"inp": a.inp, "camera": a.camera, "face": a.face or ""})
+        path = write_recording(a.out, rec)
+        print(f"{path}: {rec.n_frames} frames x {rec.n_points} points")
+        return path
+    a.c10 = 0.0048 if a.c10 is None else a.c10
+    times, pressure = pressure_trace(a.frames, 0.022 if a.pressure is None else a.pressure, a.cycles)
     if values:  # the model with the candidates these parameters need; the prior is only a carrier here
         rec, _ = synthetic_recording({"C10": a.c10}, a.mesh, a.points, a.noise, a.seed, times, pressure, progress=True,
                                      parameters=[f"C10=lognormal:{a.c10!r},{0.1 * a.c10!r}"],

@@ -58,8 +58,8 @@ def test_forward_flags_a_member_that_does_not_converge(tmp_path, monkeypatch):
     while the other member of its chunk finishes."""
     from torchfra import forward
 
-    def params_with_a_hopeless_member(config):
-        p = member_parameters(config)
+    def params_with_a_hopeless_member(config, base=None):
+        p = member_parameters(config, base)
         p["C10"][1] = 1e-5  # P / C10 = 200 at full load: far beyond what the increments allow here
         p["D1"][1] = 1.0 / (config.bulk_ratio * p["C10"][1])
         return p

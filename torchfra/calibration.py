@@ -17,7 +17,7 @@ import pickle
 import re
 import time
 import warnings
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +25,7 @@ import scipy.sparse as sp
 import torch
 
 from . import fem
-from .forward import ForwardConfig, parameter_set
+from .forward import ForwardConfig, forward_model, observed_faces, parameter_set, with_deck
 from .observe import ObservationError, ObservationOperator, frame_times, visible_faces
 from .assimilation.filters import PolynomialSlave
 from .recordings import Recording, RecordingError
@@ -64,6 +64,11 @@ class CalibrationConfig:
     # direction (scripts/study_assimilation_stride.py); they are compared with the exact posterior
     # on the same frames
     assimilate_every: int = 1
+    # the user's own model (torchfra.forward.ForwardConfig): an Abaqus/CalculiX deck, the camera's
+    # side and the observed surface; ``pressure`` is then the deck's
+    inp: str = ""
+    camera: str = "+x"
+    face: str = ""
 
 
 SEED = CalibrationConfig()  # --config seed: the paper's numerical experiment (§4.1)
@@ -75,14 +80,18 @@ def forward_dir(config: CalibrationConfig, runs_dir) -> Path:
     f = forward_config(config)
     method = "" if f.method == "full" else f"_{f.method}"
     prior = f"_prior{parameter_set(f).key()}" if f.parameters else ""  # the paper's prior keeps its old name
-    return Path(runs_dir) / "forward_cache" / (f"mesh{f.resolution}_N{f.members}_seed{f.seed}_P{f.pressure:g}"
+    model = (f"deck{f.inp_digest[:10]}{f.camera}{f.face}" if f.inp else
+             f"mesh{f.resolution}")  # a deck's cache is keyed by what it holds, not by its path
+    return Path(runs_dir) / "forward_cache" / (f"{model}_N{f.members}_seed{f.seed}_P{f.pressure:g}"
                                                f"_steps{f.load_steps}{method}{prior}")
 
 
 def forward_config(config: CalibrationConfig) -> ForwardConfig:
-    return ForwardConfig(members=config.members, resolution=config.resolution, seed=config.seed,
-                         pressure=config.pressure, load_steps=config.load_steps,
-                         parameters=list(config.parameters), fixed=list(config.fixed))
+    """The forward ensemble's settings (a deck read: its digest and pressure, see ``with_deck``)."""
+    return with_deck(ForwardConfig(members=config.members, resolution=config.resolution, seed=config.seed,
+                                   pressure=config.pressure, load_steps=config.load_steps,
+                                   parameters=list(config.parameters), fixed=list(config.fixed),
+                                   inp=config.inp, camera=config.camera, face=config.face))
 
 
 def truth_values(config: CalibrationConfig) -> dict[str, float]:
@@ -95,10 +104,10 @@ def truth_values(config: CalibrationConfig) -> dict[str, float]:
             enumerate(zip(pset.names, pset.priors))}
 
 
-def recording_operator(mesh, rec: Recording, tol: float = 1e-3) -> ObservationOperator:
-    """Match the recording's points to the camera-visible face by reference coordinates; a point off
-    the face raises an error naming its id."""
-    faces = visible_faces(mesh, (1.0, 0.0, 0.0))
+def recording_operator(mesh, rec: Recording, tol: float = 1e-3, faces=None) -> ObservationOperator:
+    """Match the recording's points to the camera-visible face (or ``faces``) by reference
+    coordinates; a point off the face raises an error naming its id."""
+    faces = visible_faces(mesh, (1.0, 0.0, 0.0)) if faces is None else faces
     try:
         return ObservationOperator(mesh, faces, points=rec.X, point_ids=rec.point_ids, tol=tol)
     except ObservationError as exc:
@@ -130,7 +139,7 @@ def validate_recording(config: CalibrationConfig) -> None:
     rec = read_recording(config.recording)
     fwd_cfg = forward_config(config)
     load_factors(rec, fwd_cfg.pressure)
-    recording_operator(ActuatorSolver(config.resolution, fwd=fwd_cfg).mesh, rec)
+    ActuatorSolver(config.resolution, rec, fwd_cfg)
 
 
 def forecast_at_frames(Y_steps: np.ndarray, steps: np.ndarray, lam: np.ndarray, W) -> np.ndarray:
@@ -162,12 +171,13 @@ class ActuatorSolver:
     recording's points."""
 
     def __init__(self, resolution: int, rec: Recording | None = None, fwd: ForwardConfig | None = None):
-        self.fwd = fwd or ForwardConfig(resolution=resolution)
+        self.fwd = with_deck(fwd or ForwardConfig(resolution=resolution))
         self.pset = parameter_set(self.fwd)
-        self.model, self.info = self.pset.build_model(resolution, self.fwd.integration)
+        self.model, self.info, self.deck_values = forward_model(self.fwd)
         self.model.finalize()
         self.mesh = self.model.mesh
-        self.operator = None if rec is None else recording_operator(self.mesh, rec)
+        self.faces = observed_faces(self.mesh, self.fwd)
+        self.operator = None if rec is None else recording_operator(self.mesh, rec, faces=self.faces)
 
     def params(self, c10) -> dict[str, torch.Tensor]:
         c10 = torch.as_tensor(c10, dtype=torch.float64).reshape(-1)
@@ -180,30 +190,37 @@ class ActuatorSolver:
         """Every model parameter of the filters' coordinates Q (N, d) of the parameter set."""
         if self.pset.d == 1 and not self.fwd.parameters:  # the paper's prior: exactly as the C10 path
             return self.params(torch.exp(Q[:, 0]))
-        return self.pset.model_parameters(Q, self.fwd.pressure, self.fwd.bulk_ratio, self.fwd.E_fiber)
+        return self.pset.model_parameters(Q, self.fwd.pressure, self.fwd.bulk_ratio, self.fwd.E_fiber,
+                                          base=self.deck_values)
 
     def options(self, **kw) -> fem.NewtonOptions:
         return fem.NewtonOptions(**{**self.fwd.newton, **kw})
 
 
 def synthetic_recording(c10, resolution: int = 1, points="nodes", noise: float = 1.0, seed: int = 0,
-                        times=None, pressure=None, progress: bool = False, parameters=(), fixed=()
+                        times=None, pressure=None, progress: bool = False, parameters=(), fixed=(), deck=None
                         ) -> tuple[Recording, np.ndarray]:
     """A recording made by the model itself at C10 = ``c10`` (or, with a parameter set ``parameters``
     / ``fixed`` as in :class:`ForwardConfig`, at the values ``c10 = {name: value}`` of its uncertain
     parameters): the FE model is solved at every frame's pressure (no interpolation in time),
     observed at ``points`` ("nodes" of the visible face, or a DIC-like grid spacing in mm), and
     perturbed with N(0, noise^2) per component. Returns the recording and its noise-free
-    observations (K, P, 2)."""
+    observations (K, P, 2). ``deck``: ``{"inp", "camera", "face"}`` of the user's own model (see
+    :class:`ForwardConfig`); its ``pressure`` at load factor 1 is the deck's, ``pressure`` a trace
+    up to it."""
     from .observe import regular_grid
 
     times = frame_times(100) if times is None else np.asarray(times, dtype=np.float64)
-    fwd = ForwardConfig(resolution=resolution)
+    deck = with_deck(ForwardConfig(resolution=resolution, parameters=list(parameters), **deck)) if deck else None
+    fwd = deck or ForwardConfig(resolution=resolution)
     pressure = fwd.pressure * times if pressure is None else np.asarray(pressure, dtype=np.float64)
+    if deck is not None and np.max(pressure) > deck.pressure * (1 + 1e-9):
+        raise ValueError(f"the pressure trace reaches {np.max(pressure):g} MPa, above the deck's {deck.pressure:g} MPa")
     solver = ActuatorSolver(resolution, fwd=ForwardConfig(resolution=resolution, pressure=float(np.max(pressure)),
-                                                          parameters=list(parameters), fixed=list(fixed)))
+                                                          parameters=list(parameters), fixed=list(fixed))
+                            if deck is None else replace(deck, fixed=list(fixed)))
     mesh = solver.mesh
-    faces = visible_faces(mesh, (1.0, 0.0, 0.0))
+    faces = solver.faces
     if isinstance(points, str) and points == "nodes":
         op = ObservationOperator(mesh, faces, points="nodes")
     else:
@@ -479,9 +496,10 @@ def _load_recording(config: CalibrationConfig, run_dir: Path, progress: bool):
                                  "delete the run folder's recording files to make a new one")
         return read_recording(path), np.load(clean_path, allow_pickle=False)["clean"], truth
     times = frame_times(config.frames)
+    deck = {"inp": config.inp, "camera": config.camera, "face": config.face} if config.inp else None
     rec, clean = synthetic_recording(truth if config.parameters else config.truth_c10, config.resolution,
                                      config.points, config.noise, config.noise_seed, times, config.pressure * times,
-                                     progress=progress, parameters=config.parameters, fixed=config.fixed)
+                                     progress=progress, parameters=config.parameters, fixed=config.fixed, deck=deck)
     write_recording(path, rec)
     np.savez(clean_path.with_suffix(".tmp.npz"), clean=clean, made_by=json.dumps(made_by))
     clean_path.with_suffix(".tmp.npz").replace(clean_path)  # written last: marks the pair complete
@@ -586,13 +604,13 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, r
     # the recording first: a bad file is refused before any FE work on the forward ensemble
     rec, clean, truth = _load_recording(config, run_dir, progress)
     load_factors(rec, fwd_cfg.pressure)
-    recording_operator(ActuatorSolver(config.resolution, fwd=fwd_cfg).mesh, rec)
+    faces = ActuatorSolver(config.resolution, rec, fwd_cfg).faces
     fwd = run_forward(fwd_cfg, forward_dir(config, run_dir.parent if runs_dir is None else runs_dir), progress=progress)
     ok = fwd["status"] == "converged"
     if not ok.all():  # flagged, never silently replaced: the filters run on the converged members
         print(f"forward members {np.flatnonzero(~ok).tolist()} did not converge; they are left out of the filters")
     mesh = fwd["model"].mesh
-    rec_op = recording_operator(mesh, rec)
+    rec_op = recording_operator(mesh, rec, faces=faces)
     W = point_map(rec_op, fwd["operator"])
     lam = load_factors(rec, fwd_cfg.pressure)
     Y_fe = forecast_at_frames(fwd["Y_steps"][ok], fwd["load_factors"], lam, W)  # (N, K, P, 2)
@@ -604,7 +622,9 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, r
     Q0 = Q0_all[torch.as_tensor(ok)]
     Z = torch.as_tensor(rec.Z.reshape(K, -1))
     r = torch.full((Z.shape[1],), config.noise ** 2, dtype=torch.float64)
-    row = rec_op.nearest_point(0.0, 40.0)
+    # the paper's tracked node; on a deck's model the point the forward ensemble moves most
+    row = (int(np.argmax(np.linalg.norm(Y_fe[:, -1], axis=-1).mean(axis=0))) if config.inp
+           else rec_op.nearest_point(0.0, 40.0))
     tracked = [2 * row, 2 * row + 1]
 
     out: dict = {"config": config, "forward": fwd, "recording": rec, "clean": clean, "truth": truth,

@@ -57,3 +57,27 @@ def run(main: Callable[[], object]) -> NoReturn:
         print(f"error: {message(exc)}\n(run with {DEBUG_FLAG} for the traceback)", file=sys.stderr)
         sys.exit(EXIT_USER_ERROR)
     sys.exit(result if isinstance(result, int) and not isinstance(result, bool) else 0)
+
+
+def add_deck_flags(parser) -> None:
+    """``--inp``, ``--camera``, ``--face``: the user's own model from an Abaqus/CalculiX deck."""
+    parser.add_argument("--inp", default=None, metavar="DECK.inp",
+                        help="the user's own model, an Abaqus/CalculiX input deck (torchfra.io.read_inp), instead of "
+                        "the paper's actuator; needs --param for its uncertain parameters; its pressure is the deck's")
+    parser.add_argument("--camera", choices=["+x", "-x"], default="+x",
+                        help="side the camera looks from (default +x: the actuator's front face); recordings observe "
+                        "uy and uz, so a deck is oriented with its camera on the x axis")
+    parser.add_argument("--face", default=None, metavar="SURFACE",
+                        help="with --inp: the deck's *SURFACE the camera observes (default: every face it sees)")
+
+
+def check_deck_flags(args, pressure_flag: str = "pressure") -> None:
+    """Refuse deck flags that cannot go together, before any work (``pressure_flag``: the flag that
+    sets the model's pressure, which a deck sets itself)."""
+    if args.inp is None:
+        if args.face is not None:
+            raise ValueError("--face names a surface of a deck: give the deck with --inp")
+        return
+    if getattr(args, pressure_flag, None) is not None:
+        flag = "--" + pressure_flag.replace("_", "-")
+        raise ValueError(f"--inp {args.inp}: the deck's *DLOAD sets the pressure; drop {flag} (or change the deck)")

@@ -61,6 +61,102 @@ class ForwardConfig:
     # the paper's prior, C10 lognormal (c10_mean, c10_std) with E_fiber fixed
     parameters: list = field(default_factory=list)
     fixed: list = field(default_factory=list)
+    # the user's own model: an Abaqus/CalculiX deck (torchfra.io.read_inp) instead of the paper's
+    # actuator; its parameters keep the deck's values unless given a prior or a fixed value, ``P`` is
+    # the deck's pressure (``pressure`` then is that value), ``inp_digest`` what the deck held when
+    # the run started (a changed deck, includes too, is another run)
+    inp: str = ""
+    inp_digest: str = ""
+    # which side the camera looks from: "+x" (the actuator's front face) or "-x"; the recording
+    # contract observes uy and uz, so a deck is oriented with its camera on the x axis
+    camera: str = "+x"
+    face: str = ""  # a deck's *SURFACE to observe instead of every face the camera sees
+
+
+CAMERAS = {"+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0)}
+
+
+def read_deck(path) -> tuple[fem.Model, dict[str, float], str]:
+    """A deck's model, its parameter values and a digest of what it holds (nodes, elements, terms,
+    constraints, values: an ``*INCLUDE``d file that changed changes it)."""
+    import hashlib
+
+    from .io.abaqus_read import read_inp
+
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"--inp {path}: no such deck file")
+    model, values = read_inp(path)
+    model.finalize()
+    h = hashlib.sha256()
+    T = model.dofmap.T
+    for arr in (model.X, model.mesh.elements, model.clamped_dofs, T.indptr, T.indices, T.data):
+        h.update(np.ascontiguousarray(arr).tobytes())
+    for t in model.terms:
+        h.update(type(t).__name__.encode())
+        h.update(np.ascontiguousarray(t.dofs).tobytes())
+    h.update(json.dumps(values, sort_keys=True).encode())
+    return model, values, h.hexdigest()[:16]
+
+
+def with_deck(config):
+    """``config`` with its deck read: ``inp_digest`` set, ``pressure`` the deck's ``P`` (a deck must
+    load its cavity or faces by one pressure, the recording's). Without a deck, ``config`` itself."""
+    import dataclasses
+
+    if not config.inp:
+        return config
+    if not config.parameters:
+        raise ValueError(f"--inp {config.inp}: name the uncertain parameters of the deck's model with --param "
+                         "NAME=KIND:A,B (e.g. --param C10=lognormal:0.0062,0.0011)")
+    _, values, digest = read_deck(config.inp)
+    pset = parameter_set(config)
+    unknown = sorted(({*pset.names} | {n for n, _ in pset.fixed}) - set(values))
+    if unknown:
+        raise ValueError(f"--inp {config.inp}: the deck's model has no parameter {', '.join(unknown)} (its parameters: "
+                         f"{', '.join(sorted(values))}); give priors or values of those only")
+    if "P" not in values:
+        loads = sorted(k for k in values if k.startswith("P_"))
+        raise ValueError(f"--inp {config.inp}: the deck has no single pressure load P (found {loads or 'none'}); "
+                         "a recording's pressure column drives one pressure: load every face with one *DLOAD magnitude")
+    if config.camera not in CAMERAS:
+        raise ValueError(f"--camera {config.camera!r}: the camera looks along x ('+x' or '-x'; the recording "
+                         "contract observes uy and uz); rotate the deck so its observed face is normal to x")
+    return dataclasses.replace(config, inp_digest=digest, pressure=float(values["P"]))
+
+
+def forward_model(config) -> tuple[fem.Model, dict, dict[str, float] | None]:
+    """The FE model of a forward (or calibration) config, its info, and the deck's parameter values
+    (None for the paper's actuator)."""
+    if not config.inp:
+        model, info = parameter_set(config).build_model(config.resolution, config.integration)
+        return model, info, None
+    model, values, digest = read_deck(config.inp)
+    if config.inp_digest and digest != config.inp_digest:
+        raise ValueError(f"--inp {config.inp} changed since this run started (digest {digest}, was "
+                         f"{config.inp_digest}); use another --name, or delete the run folder")
+    trusses = sum(t.dofs.shape[0] for t in model.terms if isinstance(t, fem.Truss))
+    info = {"elements": model.mesh.n_elements, "fiber_elements": trusses, "dofs": model.n_red, "deck": str(config.inp),
+            "mesh": model.mesh}
+    return model, info, values
+
+
+def observed_faces(mesh, config) -> np.ndarray | str:
+    """The faces the camera of ``config`` sees (or the deck's named surface)."""
+    if config.face:
+        if config.face.upper() not in mesh.face_sets:
+            raise ValueError(f"--face {config.face}: the deck has no such surface (its surfaces: "
+                             f"{', '.join(sorted(mesh.face_sets)) or 'none'})")
+        return config.face.upper()
+    return visible_faces(mesh, CAMERAS[config.camera])
+
+
+def observed_surface(config):
+    """The observed faces of ``config``'s model as a registration target (DIC points are placed on it)."""
+    from .registration import mesh_face
+
+    model = forward_model(config)[0]
+    return mesh_face(model.mesh, faces=observed_faces(model.mesh, config))
 
 
 def parameter_set(config) -> ParameterSet:
@@ -77,10 +173,11 @@ def prior_coordinates(config: ForwardConfig) -> torch.Tensor:
     return parameter_set(config).sample(config.members, torch.Generator().manual_seed(config.seed))
 
 
-def member_parameters(config: ForwardConfig) -> dict[str, torch.Tensor]:
-    """Prior draws and the fixed parameters of every member: every FE model parameter, name -> (N,)."""
+def member_parameters(config: ForwardConfig, base: dict | None = None) -> dict[str, torch.Tensor]:
+    """Prior draws and the fixed parameters of every member: every FE model parameter, name -> (N,)
+    (``base``: a deck's values, see :meth:`ParameterSet.model_parameters`)."""
     return parameter_set(config).model_parameters(prior_coordinates(config), config.pressure, config.bulk_ratio,
-                                                  config.E_fiber)
+                                                  config.E_fiber, base=base)
 
 
 def _check_resume(run_dir: Path, config: ForwardConfig) -> None:
@@ -283,13 +380,14 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
     run_dir = Path(run_dir)
     r = ranks()  # torchrun: members are shared out by rank, not claimed through lock files
     progress = progress and r.rank == 0
+    config = with_deck(config)
     _check_resume(run_dir, config)
     torch.set_num_threads(config.threads)
     t0 = time.perf_counter()
-    model, info = parameter_set(config).build_model(config.resolution, config.integration)
+    model, info, base = forward_model(config)
     mesh = model.mesh
-    operator = ObservationOperator(mesh, visible_faces(mesh, (1.0, 0.0, 0.0)), points="nodes")
-    params = member_parameters(config)
+    operator = ObservationOperator(mesh, observed_faces(mesh, config), points="nodes")
+    params = member_parameters(config, base)
     load = np.arange(1, config.load_steps + 1) / config.load_steps
     chunks_dir = run_dir / "members"
     chunks_dir.mkdir(exist_ok=True)

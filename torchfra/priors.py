@@ -281,13 +281,27 @@ class ParameterSet:
                                     cavity_offset="cavity_offset" in on)
 
     def model_parameters(self, Q: torch.Tensor, pressure: float, bulk_ratio: float = 1000.0,
-                         E_fiber: float = 31000.0) -> dict[str, torch.Tensor]:
+                         E_fiber: float = 31000.0, base: dict | None = None) -> dict[str, torch.Tensor]:
         """Every FE model parameter, name -> (N,), of coordinates Q (N, d): uncertain ones from Q, fixed
-        ones as given, the rest at the base model's values (D1 tied to C10 by ``bulk_ratio``)."""
+        ones as given, the rest at the base model's values (D1 tied to C10 by ``bulk_ratio``).
+
+        ``base``: the values of every parameter of a model read from a deck (``read_inp``): the rest
+        then keep the deck's values (D1 included: no tie to C10) and ``P`` is ``pressure``; a
+        parameter the deck's model does not have is refused by name."""
         N = Q.shape[0]
         values = self.natural(Q)
         for n, v in self.fixed:
             values[n] = torch.full((N,), float(v), dtype=torch.float64)
+        if base is not None:
+            unknown = sorted(set(values) - set(base))
+            if unknown:
+                raise PriorError(f"the deck's model has no parameter {', '.join(unknown)} (its parameters: "
+                                 f"{', '.join(sorted(base))}); give priors or values of those only")
+            p = {k: torch.full((N,), float(v), dtype=torch.float64) for k, v in base.items()}
+            p.update(values)
+            if "P" in p:
+                p["P"] = torch.full((N,), float(pressure), dtype=torch.float64)
+            return p
         c10 = values["C10"]
         p = {"C10": c10, "D1": values["D1"] if "D1" in values else 1.0 / (bulk_ratio * c10),
              "E_fiber": values.get("E_fiber", torch.full((N,), E_fiber, dtype=torch.float64)),

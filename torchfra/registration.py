@@ -113,12 +113,12 @@ class TriangleFace:
         return self.mesh.triangles_center, self.mesh.area_faces
 
 
-def mesh_face(mesh, camera_direction=(1.0, 0.0, 0.0)) -> TriangleFace:
+def mesh_face(mesh, camera_direction=(1.0, 0.0, 0.0), faces=None) -> TriangleFace:
     """The faces of a Hex20 mesh an orthographic camera along ``camera_direction`` sees
-    (:func:`torchfra.observe.visible_faces`), as triangles."""
+    (:func:`torchfra.observe.visible_faces`), or ``faces`` (face rows or a face set's name), as triangles."""
     from .observe import boundary_trimesh, visible_faces
 
-    surface = boundary_trimesh(mesh, visible_faces(mesh, camera_direction))
+    surface = boundary_trimesh(mesh, visible_faces(mesh, camera_direction) if faces is None else faces)
     return TriangleFace(surface.vertices, surface.faces)
 
 

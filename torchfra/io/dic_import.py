@@ -41,10 +41,11 @@ def add_arguments(p: argparse.ArgumentParser, pressure_required: bool = False) -
     g.add_argument("--tol", type=float, default=0.5, help="farthest a point may lie from the face (mm)")
 
 
-def import_export(export, a: argparse.Namespace, out) -> tuple[str, dict]:
+def import_export(export, a: argparse.Namespace, out, face=None) -> tuple[str, dict]:
     """Convert the export (a directory, a file, or a list of files) with the options ``a`` (see
     :func:`add_arguments`) into the recording ``out``; returns a one-paragraph report and the
-    ``<out>.import.json`` content."""
+    ``<out>.import.json`` content. ``face``: the model face the points are registered on (a
+    :mod:`torchfra.registration` face; default the actuator's front face)."""
     from ..recordings import write_recording
     from ..registration import Similarity, evaluate, front_face, register
 
@@ -54,7 +55,7 @@ def import_export(export, a: argparse.Namespace, out) -> tuple[str, dict]:
     series = read_dic(export, a.format, scale=a.scale, units=a.units, exclude=exclude)
     times, pressure = pressure_at_frames(read_pressure_trace(a.pressure, a.pressure_units), series.frames,
                                          a.match, a.frame_rate, a.first_frame_time)
-    face = front_face()
+    face = front_face() if face is None else face
     if a.camera_to_model == "identity":
         reg = evaluate(series.X, face, Similarity.identity(), a.tol, series.point_ids)
     else:
@@ -97,15 +98,15 @@ def import_export(export, a: argparse.Namespace, out) -> tuple[str, dict]:
     return text, info
 
 
-def recording_path(path, a: argparse.Namespace, run_dir) -> Path:
+def recording_path(path, a: argparse.Namespace, run_dir, face=None) -> Path:
     """The recording a script should read: ``path`` itself (the recording contract), or, when
     ``--pressure`` was given, the export at ``path`` converted into ``run_dir/recording.csv`` (the
-    report printed)."""
+    report printed), registered on ``face`` (see :func:`import_export`)."""
     if getattr(a, "pressure", None) is None:
         return Path(path)
     import textwrap
 
     out = Path(run_dir) / "recording.csv"
-    text, _ = import_export(path, a, out)
+    text, _ = import_export(path, a, out, face)
     print(textwrap.fill(text, width=100))
     return out

@@ -38,7 +38,12 @@ def write_forward_outputs(result: dict, config, run_dir: str | Path) -> dict:
     params = {k: v.numpy() for k, v in result["params"].items()}
     names = list(params)
     converged = result["status"] == "converged"
-    tracked = op.nearest_point(*TRACKED_YZ)
+    if getattr(config, "inp", ""):  # a deck: the observed point that moves most on average
+        final = np.linalg.norm(result["Y_fe"][converged, -1], axis=-1)
+        tracked = int(np.nanargmax(np.nanmean(final, axis=0))) if converged.any() else 0
+    else:
+        tracked = op.nearest_point(*TRACKED_YZ)
+    at = np.round(op.points[tracked, 1:], 3).tolist()
     np.savez(
         run_dir / "forward.npz",
         times=result["times"], pressure=result["pressure"], param_names=np.array(names),
@@ -82,7 +87,7 @@ def write_forward_outputs(result: dict, config, run_dir: str | Path) -> dict:
     log_newton_records(writer, {**result, "residual_history": result["history"]})
     fig = band_figure(result["times"], [Y_tr[converged, :, 0], Y_tr[converged, :, 1]],
                       ["tracked u_y (mm)", "tracked u_z (mm)"],
-                      f"prior ensemble, {int(converged.sum())} members, node at (y, z) = {TRACKED_YZ} mm")
+                      f"prior ensemble, {int(converged.sum())} members, node at (y, z) = {at} mm")
     log_figure(writer, "forward/tracked_node", fig, run_dir / "tracked_node.png")
     u_mean = result["u_last"][converged].mean(axis=0)
     log_mesh(writer, "forward/mean_deformed", mesh, u_mean)
