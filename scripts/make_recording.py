@@ -20,7 +20,7 @@ import torch  # noqa: E402
 
 from torchfra.calibration import synthetic_recording  # noqa: E402
 from torchfra.cli import add_deck_flags, check_deck_flags  # noqa: E402
-from torchfra.forward import ForwardConfig, read_deck, with_deck  # noqa: E402
+from torchfra.forward import ForwardConfig, deck_summary, with_deck  # noqa: E402
 from torchfra.observe import frame_times  # noqa: E402
 from torchfra.priors import parse_fixed  # noqa: E402
 from torchfra.recordings import write_recording  # noqa: E402
@@ -72,7 +72,7 @@ def main(argv=None) -> Path:
     if a.inp:  # the user's deck: its own values, those of --value and --c10 replaced, at its pressure
         fwd = with_deck(ForwardConfig(inp=a.inp, camera=a.camera, face=a.face or "", parameters=["C10=lognormal:1,0.1"],
                                       fixed=[f"{k}={v!r}" for k, v in values.items()]))
-        c10 = a.c10 if a.c10 is not None else read_deck(a.inp)[1]["C10"]
+        c10 = a.c10 if a.c10 is not None else deck_summary(a.inp)[0]["C10"]
         times, pressure = pressure_trace(a.frames, fwd.pressure, a.cycles)
         rec, _ = synthetic_recording({"C10": c10}, a.mesh, a.points, a.noise, a.seed, times, pressure, progress=True,
                                      parameters=[f"C10=lognormal:{c10!r},{0.1 * c10!r}"], fixed=list(fwd.fixed),

@@ -10,6 +10,7 @@ K/mu = ``bulk_ratio`` (D1 = 1 / (bulk_ratio C10)), so every member is equally in
 """
 from __future__ import annotations
 
+import functools
 import json
 import os
 import socket
@@ -99,6 +100,23 @@ def read_deck(path) -> tuple[fem.Model, dict[str, float], str]:
     return model, values, h.hexdigest()[:16]
 
 
+@functools.lru_cache(maxsize=8)
+def _deck_summary(path: str, mtime_ns: int, size: int) -> tuple[dict[str, float], str]:
+    _, values, digest = read_deck(path)
+    return values, digest
+
+
+def deck_summary(path) -> tuple[dict[str, float], str]:
+    """``read_deck``'s values and digest, read once per version of the file in a process (the
+    scripts ask for them at several steps)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"--inp {path}: no such deck file")
+    st = path.stat()
+    values, digest = _deck_summary(str(path.resolve()), st.st_mtime_ns, st.st_size)
+    return dict(values), digest
+
+
 def with_deck(config):
     """``config`` with its deck read: ``inp_digest`` set, ``pressure`` the deck's ``P`` (a deck must
     load its cavity or faces by one pressure, the recording's). Without a deck, ``config`` itself."""
@@ -109,7 +127,7 @@ def with_deck(config):
     if not config.parameters:
         raise ValueError(f"--inp {config.inp}: name the uncertain parameters of the deck's model with --param "
                          "NAME=KIND:A,B (e.g. --param C10=lognormal:0.0062,0.0011)")
-    _, values, digest = read_deck(config.inp)
+    values, digest = deck_summary(config.inp)
     pset = parameter_set(config)
     unknown = sorted(({*pset.names} | {n for n, _ in pset.fixed}) - set(values))
     if unknown:
