@@ -181,6 +181,19 @@ def test_limits_name_the_keyword_that_raises_them(tmp_path):
         read_recording(tmp_path / "r.npz", max_rows=2)
 
 
+def test_a_ragged_layout_is_named_not_allocated(tmp_path):
+    """Rows that each bring their own frame and point (ids renumbered per frame) would need a dense
+    frames x points array of 1e8 entries for 1e4 rows: refused before allocating it, saying what the
+    layout is (1e4 of 1e8 entries present) and that points must keep their ids across frames."""
+    n = 10_000
+    lines = [f"{k},{0.5 + k / (2 * n)},{0.01},{k},8.0,{k % 8},{k % 60},0.1,-0.1" for k in range(n)]
+    path = tmp_path / "ragged.csv"
+    path.write_text(HEADER + "\n".join(lines) + "\n")
+    with pytest.raises(RecordingError, match=r"10000 frames x 10000 points.*fill 0.01 % of them: the point ids "
+                                             r"change from frame to frame"):
+        read_recording(path)
+
+
 def _grid(K=3, P=2):
     return {"frame": np.arange(K), "point_id": np.array([4, 7][:P]), "time": np.linspace(0.1, 1, K),
             "pressure": np.linspace(0.01, 0.02, K), "X": np.full(P, 8.0), "Y": np.arange(P, dtype=float),

@@ -94,9 +94,14 @@ def from_table(t: dict[str, np.ndarray], source: str = "<memory>", max_displacem
     pids, pi = np.unique(pid, return_inverse=True)
     K, P = len(frames), len(pids)
     if K * P > max_frame_points:
+        present = frame.size / (K * P)
+        ragged = (f" Only {frame.size} rows fill {100 * present:.2g} % of them: the point ids change from frame to frame "
+                  "(a DIC export renumbering its points per frame?); a recording follows the same points, by id, "
+                  "through every frame (torchfra.io.dic registers an export's points on its reference frame)."
+                  if present < 0.1 else "")
         raise RecordingError(f"{source}: {K} frames x {P} points = {K * P} entries per displacement component, "
                              f"more than the limit max_frame_points = {max_frame_points}; if the recording is "
-                             "right, raise the limit with read_recording(..., max_frame_points=...)")
+                             f"right, raise the limit with read_recording(..., max_frame_points=...).{ragged}")
     key = fi * P + pi
     uniq, counts = np.unique(key, return_counts=True)
     if np.any(counts > 1):
