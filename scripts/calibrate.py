@@ -21,6 +21,7 @@ import signal
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
@@ -40,23 +41,55 @@ from torchfra.report.calibration import write_calibration_outputs  # noqa: E402
 CONFIGS = {"seed": SEED}
 
 
-def start_forward_helpers(config: CalibrationConfig, run_dir: Path, n: int) -> list:
-    """Extra processes that solve chunks of the same forward ensemble (they share the run folder
-    through chunk locks, see torchfra.forward); none when the ensemble is already on disk."""
+def _free_port() -> int:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+@contextmanager
+def forward_ranks(config: CalibrationConfig, run_dir: Path, n: int, argv: list[str]):
+    """The forward ensemble on ``n`` processes through torch.distributed (gloo, this machine): this
+    process becomes rank 0 of the group, and ranks 1..n-1 are this script again with the same
+    arguments, which solve their share of the members (torchfra.forward) and leave. None is started
+    when the ensemble is already on disk. On the way out the group is left, the environment restored,
+    and ranks still running when the ensemble did not finish are stopped."""
     fwd, where = forward_config(config), forward_dir(config, run_dir.parent)
     per_file = 1 if fwd.method == "reduced" else fwd.chunk
-    done = all((where / "members" / f"chunk_{s:05d}.npz").exists() for s in range(0, fwd.members, per_file))
-    if n <= 0 or (where / "forward.npz").exists() or done:
-        return []
-    where.mkdir(parents=True, exist_ok=True)
-    cmd = [sys.executable, str(Path(__file__).with_name("forward_uq.py")), "--members", str(fwd.members),
-           "--mesh", str(fwd.resolution), "--seed", str(fwd.seed), *([] if fwd.inp else ["--pressure", repr(fwd.pressure)]),
-           *(["--inp", fwd.inp, "--camera", fwd.camera, *(["--face", fwd.face] if fwd.face else [])] if fwd.inp else []),
-           "--load-steps", str(fwd.load_steps), "--chunk", str(fwd.chunk), "--threads", str(fwd.threads),
-           "--method", fwd.method, *[f"--param={x}" for x in fwd.parameters], *[f"--fixed={x}" for x in fwd.fixed],
-           "--runs-dir", str(where.parent), "--out", where.name, "--quiet"]
-    env = dict(os.environ, MKL_NUM_THREADS=str(fwd.threads), OMP_NUM_THREADS=str(fwd.threads))
-    return [subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL) for _ in range(n)]
+
+    def solved() -> bool:
+        return all((where / "members" / f"chunk_{s:05d}.npz").exists() for s in range(0, fwd.members, per_file))
+
+    if n <= 1 or solved():
+        yield []
+        return
+    group = {"MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(_free_port()), "WORLD_SIZE": str(n)}
+    names = (*group, "RANK", "LOCAL_RANK", "LOCAL_WORLD_SIZE")
+    saved = {k: os.environ.get(k) for k in names}
+    env = dict(os.environ, **group, LOCAL_WORLD_SIZE=str(n), MKL_NUM_THREADS=str(fwd.threads),
+               OMP_NUM_THREADS=str(fwd.threads))
+    procs = [subprocess.Popen([sys.executable, str(Path(__file__).resolve()), *argv], stdout=subprocess.DEVNULL,
+                              env={**env, "RANK": str(i), "LOCAL_RANK": str(i)}) for i in range(1, n)]
+    os.environ.update(group, RANK="0", LOCAL_RANK="0", LOCAL_WORLD_SIZE=str(n))
+    try:
+        yield procs
+    finally:
+        finish(ranks(), wait=False)  # the other ranks left after the forward ensemble
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+        for h in procs:
+            stopped = False
+            if h.poll() is None and not solved():
+                h.terminate()  # this process failed or was stopped: do not leave ranks behind
+                stopped = True
+            if h.wait() != 0 and not stopped:
+                print(f"forward rank process {h.pid} failed (exit status {h.returncode}); the members it "
+                      "had not saved are solved by a rerun", file=sys.stderr)
 
 
 def _base_config(a) -> tuple[CalibrationConfig, dict]:
@@ -112,10 +145,12 @@ def main(argv=None) -> dict:
     p.add_argument("--coverage-seeds", type=int, default=None, help="noise re-draws for the coverage study")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (recorded)")
     p.add_argument("--workers", type=int, default=2,
-                   help="processes solving forward-ensemble chunks side by side (one per core); the restart "
-                        "filter, which runs after them, uses as many threads")
+                   help="processes sharing the forward ensemble through torch.distributed (one per core; this one "
+                        "is rank 0, the others leave after it); the restart filter, which runs after them, uses as "
+                        "many threads")
     add_arguments(p)
     add_deck_flags(p)
+    raw_argv = list(sys.argv[1:] if argv is None else argv)
     a = p.parse_args(argv)
     check_deck_flags(a, "forward_pressure")
     torch.set_num_threads(a.threads)
@@ -157,19 +192,12 @@ def main(argv=None) -> dict:
     t0 = time.perf_counter()
     validate_recording(config)  # refuse a bad file before any FE work or helper process
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # run the cleanup below when killed politely
-    helpers = start_forward_helpers(config, run_dir, a.workers - 1)
-    try:
-        out = run_calibration(config, run_dir, restart_threads=max(a.threads, a.workers, r.size))
-    finally:
-        for h in helpers:
-            stopped = False
-            if h.poll() is None and not (forward_dir(config, run_dir.parent) / "forward.npz").exists():
-                h.terminate()  # the main process failed or was stopped: do not leave helpers behind
-                stopped = True
-            if h.wait() != 0 and not stopped:
-                print(f"forward helper process {h.pid} failed (exit status {h.returncode}); the members it "
-                      "had not saved are solved by a rerun", file=sys.stderr)
-    finish(r, wait=False)  # the other ranks left after the forward ensemble
+    if r.parallel:  # torchrun started the ranks
+        out = run_calibration(config, run_dir, restart_threads=max(a.threads, r.size))
+        finish(r, wait=False)  # the other ranks left after the forward ensemble
+    else:
+        with forward_ranks(config, run_dir, a.workers, raw_argv):
+            out = run_calibration(config, run_dir, restart_threads=max(a.threads, a.workers))
     summary = write_calibration_outputs(out, run_dir, time.perf_counter() - t0)
     fit = summary.get("data_fit", {"ok": True})
     if not fit["ok"]:  # flagged, never reported as a result

@@ -101,3 +101,32 @@ def test_calibration_of_a_deck_from_its_recording(deck, tmp_path):
     assert len(cache) == 1 and cache[0].name.startswith("deck")
     with pytest.raises(ValueError, match="drop --forward-pressure"):
         calibrate.main(["--inp", str(deck), "--param", PRIOR, "--recording", str(rec), "--forward-pressure", "0.002"])
+
+
+def test_calibrate_workers_share_the_forward_ensemble_through_torch_distributed(deck, tmp_path):
+    """``calibrate.py --workers 2``: this process becomes rank 0 of a gloo group and a second process
+    (the script again, rank 1) solves its share of the members; every member equals the one-process
+    run's (round-off), every filter gives the same posterior, and the process leaves the group and
+    its environment as it found them."""
+    import os
+
+    import torch.distributed as dist
+
+    rec = tmp_path / "rec.csv"
+    make_recording.main(["--inp", str(deck), "--noise", "0.01", "--seed", "3", "--frames", "12", "--out", str(rec)])
+    args = ["--inp", str(deck), "--param", PRIOR, "--recording", str(rec), "--noise", "0.01", "--members", "16",
+            "--coverage-seeds", "0", "--name", "cal"]
+    one = calibrate.main([*args, "--workers", "1", "--runs-dir", str(tmp_path / "one")])
+    two = calibrate.main([*args, "--workers", "2", "--runs-dir", str(tmp_path / "two")])
+    assert "WORLD_SIZE" not in os.environ and "MASTER_PORT" not in os.environ and not dist.is_initialized()
+
+    def members(root):
+        files = sorted((root / "forward_cache").glob("*/members/chunk_*.npz"))
+        with_y = [np.load(f, allow_pickle=False) for f in files]
+        return np.concatenate([f["Y"] for f in with_y]), [str(f["method"][0]) for f in with_y]
+
+    (Y1, m1), (Y2, m2) = members(tmp_path / "one"), members(tmp_path / "two")
+    assert Y1.shape == (16, 20, 8, 2) and m1 == m2
+    assert np.abs(Y1 - Y2).max() < 1e-10
+    for name in ("hierarchical", "hierarchical_nonlinear", "exact", "restart"):
+        assert abs(one["filters"][name]["C10"]["mean"] - two["filters"][name]["C10"]["mean"]) < 1e-9
