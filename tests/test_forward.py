@@ -1,9 +1,11 @@
 """Forward ensemble: prior sampling, resumable chunked solves, the files other tools read."""
+import dataclasses
 import json
 import math
 
 import numpy as np
 import pytest
+import torch
 
 from torchfra.forward import ForwardConfig, lognormal_parameters, member_parameters, run_forward
 from torchfra.report.forward import write_forward_outputs
@@ -48,6 +50,10 @@ def test_forward_run_files_and_resume(tmp_path):
     again = run_forward(config, run_dir, progress=False)
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps
     assert np.array_equal(again["Y_fe"], result["Y_fe"])
+    # threads and the reduced batch change how members are solved, not what they are: it resumes
+    how = run_forward(dataclasses.replace(config, threads=2, reduced_batch=3), run_dir, progress=False)
+    assert {p: p.stat().st_mtime_ns for p in stamps} == stamps and np.array_equal(how["Y_fe"], result["Y_fe"])
+    torch.set_num_threads(1)
     with pytest.raises(ValueError, match="other settings"):
         run_forward(ForwardConfig(members=3, resolution=1, load_steps=1, frames=10, chunk=1), run_dir)
 
