@@ -159,3 +159,35 @@ def test_warm_start_continues_changes_parameters_and_unloads():
     back = fem.solve(model, q, [1.0], start=fem.WarmStart(cont.x_last, 1.0, 0.5))
     assert rel(back.u[:, -1], full_q.u[:, 0]) < 1e-8
     assert back.iterations.max() > 0
+
+
+def test_reused_factorizations_give_the_same_answer_with_fewer_factorizations(monkeypatch):
+    """Modified Newton near convergence (``reuse_factorization``): the converged states equal full
+    Newton's to the Newton tolerance (1e-9 relative residual: 1e-7 in u here), with fewer sparse
+    factorizations; a batch still equals its members solved one by one, step for step."""
+    from torchfra.fem import linsolve
+
+    mesh = box_mesh((2.0, 2.0, 6.0), (2, 2, 3))
+    params = {"C10": torch.tensor([0.05, 0.08]), "D1": torch.tensor([0.5, 0.2]), "P": torch.tensor([0.004, 0.005])}
+    loads = np.arange(1, 11) / 10
+    count = {"n": 0}
+    factorize = linsolve.SparseSolver.factorize
+
+    def counted(self, K):
+        count["n"] += 1
+        return factorize(self, K)
+
+    monkeypatch.setattr(linsolve.SparseSolver, "factorize", counted)
+    runs = {}
+    for reuse in (False, True):
+        count["n"] = 0
+        sol = fem.solve(_bending_model(mesh), params, loads, fem.NewtonOptions(reuse_factorization=reuse))
+        assert (sol.status == "converged").all()
+        runs[reuse] = (sol, count["n"])
+    (full, n_full), (mod, n_mod) = runs[False], runs[True]
+    assert n_mod < n_full, (n_mod, n_full)
+    assert float((mod.u - full.u).abs().max() / full.u.abs().max()) < 1e-7
+    for m in range(2):
+        one = fem.solve(_bending_model(mesh), {k: v[m : m + 1] for k, v in params.items()}, loads)
+        assert one.iterations[0] == mod.iterations[m]
+        assert float((one.u[0] - mod.u[m]).abs().max() / mod.u[m].abs().max()) < 1e-10

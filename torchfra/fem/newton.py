@@ -54,6 +54,15 @@ class NewtonOptions:
     # residual exceeds this (its next iterate will most likely need a step): one evaluation, not two
     member_budget: int = 0  # Newton iterations one member may spend in all (0: no limit); a member
     # that uses them up before the last load factor stops there, "diverged", and the others go on
+    reuse_factorization: bool = True  # near convergence (last relative residual below tangent_hint),
+    # a member steps with its factorization from earlier in the same increment instead of a new
+    # tangent (modified Newton), while each such step cuts the residual by reuse_contraction; the
+    # convergence test is the same, so is the answer to its tolerance. Each member then holds its
+    # own factorization: batches of more than REUSE_MAX_MEMBERS take a new tangent every step
+    reuse_contraction: float = 0.1
+
+
+REUSE_MAX_MEMBERS = 8
 
 
 CONVERGED, DIVERGED = "converged", "diverged"
@@ -156,6 +165,7 @@ def solve(
     x = torch.zeros(N, pack.size, dtype=dtype)
     x_conv, x_prev = x.clone(), x.clone()
     lam_conv, lam_prev = np.zeros(N), np.zeros(N)
+    lam_prev2, x_prev2 = np.full(N, np.nan), x.clone()  # a third converged state: quadratic predictor
     dlam = np.full(N, opt.initial_increment)
     nxt = np.zeros(N, dtype=np.int64)
     lam = np.minimum(dlam, outs[0])
@@ -206,6 +216,12 @@ def solve(
         return Evaluation(**merged), dict(zip(idx[hint].tolist(), with_t.tangents))
 
     def predictor(m):
+        if np.isfinite(lam_prev2[m]) and lam_prev[m] > lam_prev2[m]:  # quadratic through the last three
+            l0, l1, l2, t = lam_prev2[m], lam_prev[m], lam_conv[m], lam[m]
+            w0 = (t - l1) * (t - l2) / ((l0 - l1) * (l0 - l2))
+            w1 = (t - l0) * (t - l2) / ((l1 - l0) * (l1 - l2))
+            w2 = (t - l0) * (t - l1) / ((l2 - l0) * (l2 - l1))
+            return w0 * x_prev2[m] + w1 * x_prev[m] + w2 * x_conv[m]
         return x_conv[m] + (lam[m] - lam_conv[m]) * velocity[m]
 
     def cut(m):
@@ -239,6 +255,12 @@ def solve(
     ls_base, ls_dx = torch.zeros_like(x), torch.zeros_like(x)
     ls_alpha, ls_count = np.ones(N), np.zeros(N, dtype=np.int64)
     ls_pending, r_prev, rel_prev = np.zeros(N, dtype=bool), np.zeros(N), np.full(N, np.inf)
+    # modified Newton near convergence: each member's own solver, the increment its factorization
+    # is from (-1: none), whether its last step reused it, and whether reusing stopped contracting
+    reusing = opt.reuse_factorization and N <= REUSE_MAX_MEMBERS
+    solvers = [SparseSolver(opt.linear_solver, model.symmetric_tangent) for _ in range(N)] if reusing else None
+    held_increment = np.full(N, -1, dtype=np.int64)
+    modified, poor = np.zeros(N, dtype=bool), np.zeros(N, dtype=bool)
     idx = np.flatnonzero(active)
     while idx.size:
         ev, tangents_at = evaluate_iterates(idx)
@@ -262,10 +284,15 @@ def solve(
                 last_res[m] = rel[j]
             E_ref = max(E0[m], scale[j] * float(torch.linalg.norm(x[m, :n] - x_conv[m, :n])))
             energy_ok = it[m] == 0 or de[m] <= opt.etol * E_ref
-            stagnated = it[m] > 0 and rel[j] < opt.stagnation_tol and rel[j] > 0.5 * rel_prev[m]
+            if modified[m] and not rel[j] <= opt.reuse_contraction * rel_prev[m]:
+                poor[m] = True  # the held factorization no longer contracts: a new tangent next
+            # a slow modified step is no round-off floor: only full Newton steps may stagnate
+            stagnated = (it[m] > 0 and not modified[m] and rel[j] < opt.stagnation_tol
+                         and rel[j] > 0.5 * rel_prev[m])
             rel_prev[m] = rel[j]
             if ok[j] and ((force_ok[j] and energy_ok) or stagnated):
                 increments[m] += 1
+                lam_prev2[m], x_prev2[m] = lam_prev[m], x_prev[m]
                 lam_prev[m], lam_conv[m] = lam_conv[m], lam[m]
                 x_prev[m], x_conv[m] = x_conv[m], x[m].clone()
                 velocity[m] = (x_conv[m] - x_prev[m]) / (lam_conv[m] - lam_prev[m])
@@ -292,15 +319,22 @@ def solve(
         if need:
             need = np.asarray(need)
             rhs = ev.rhs[np.searchsorted(idx, need)]  # condensed residuals at the iterates
-            missing = np.array([m for m in need if m not in tangents_at], dtype=np.int64)
+            reuse = {m for m in need if reusing and m not in tangents_at and held_increment[m] == increments[m]
+                     and it[m] > 0 and not poor[m]}
+            missing = np.array([m for m in need if m not in tangents_at and m not in reuse], dtype=np.int64)
             if missing.size:  # the hint was wrong for these: evaluate their tangents now
                 tangents_at.update(zip(missing.tolist(), evaluate(missing, x[missing], tangent=True).tangents))
             t0 = time.perf_counter()
             da = torch.full((need.size, n), float("nan"), dtype=dtype)
             for j, m in enumerate(need):
+                modified[m] = m in reuse
+                solver = solvers[m] if reusing else linear
                 try:
-                    linear.factorize(tangents_at[m])
-                    da[j] = torch.as_tensor(linear.solve(-rhs[j].numpy()))
+                    if not modified[m]:
+                        held_increment[m] = -1
+                        solver.factorize(tangents_at[m])
+                        held_increment[m], poor[m] = increments[m], False
+                    da[j] = torch.as_tensor(solver.solve(-rhs[j].numpy()))
                 except SingularMatrixError:  # the member is cut back below
                     pass
             timings["solve"] += time.perf_counter() - t0
@@ -331,6 +365,8 @@ def solve(
     if bar is not None:
         bar.close()
     linear.release()
+    for solver in solvers or []:
+        solver.release()
 
     u_out = torch.full((N, T, model.n_nodes, 3), float("nan"), dtype=dtype)
     for k in range(T):
