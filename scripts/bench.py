@@ -37,15 +37,18 @@ import statistics
 import sys
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 import scipy
 import torch
 
-from torchfra import allocator, fem
-from torchfra.fem.assembly import SparsePattern, scatter_vector
-from torchfra.fem.linsolve import Factorization, available_backends, resolve_backend
-from torchfra.geometry.structured import box_mesh
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's torchfra, as every script
+
+from torchfra import allocator, fem  # noqa: E402
+from torchfra.fem.assembly import SparsePattern, scatter_vector  # noqa: E402
+from torchfra.fem.linsolve import Factorization, available_backends, resolve_backend  # noqa: E402
+from torchfra.geometry.structured import box_mesh  # noqa: E402
 
 warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
 warnings.filterwarnings("ignore", message="Sparse invariant checks")
