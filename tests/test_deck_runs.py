@@ -70,6 +70,12 @@ def test_a_changed_deck_is_another_run_and_bad_deck_settings_are_named(deck, tmp
         with_deck(ForwardConfig(inp=str(tmp_path / "nope.inp"), parameters=[PRIOR]))
     with pytest.raises(ValueError, match="no such surface \\(its surfaces: DLOAD_P\\)"):
         observed_faces(read_deck(deck)[0].mesh, ForwardConfig(inp=str(deck), face="TOP"))
+    with pytest.raises(ValueError, match="is a folder"):
+        with_deck(ForwardConfig(inp=str(tmp_path), parameters=[PRIOR]))
+    nan = tmp_path / "nan.inp"
+    nan.write_text(deck.read_text().replace("0.1, 0.03", "nan, 0.03"))
+    with pytest.raises(ValueError, match="gives C10 no finite value"):
+        with_deck(ForwardConfig(inp=str(nan), parameters=[PRIOR]))
     two = tmp_path / "two_pressures.inp"
     two.write_text(deck.read_text().replace("BEAM, P2, 0.001", "11, P2, 0.001\n12, P2, 0.002"))
     with pytest.raises(ValueError, match="no single pressure load P"):

@@ -87,9 +87,7 @@ def read_deck(path) -> tuple[fem.Model, dict[str, float], str]:
 
     from .io.abaqus_read import read_inp
 
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"--inp {path}: no such deck file")
+    path = _deck_path(path)
     model, values = read_inp(path)
     model.finalize()
     h = hashlib.sha256()
@@ -103,6 +101,15 @@ def read_deck(path) -> tuple[fem.Model, dict[str, float], str]:
     return model, values, h.hexdigest()[:16]
 
 
+def _deck_path(path) -> Path:
+    path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"--inp {path}: is a folder; give the deck's .inp file")
+    if not path.is_file():
+        raise ValueError(f"--inp {path}: no such deck file")
+    return path
+
+
 @functools.lru_cache(maxsize=8)
 def _deck_summary(path: str, mtime_ns: int, size: int) -> tuple[dict[str, float], str]:
     _, values, digest = read_deck(path)
@@ -112,9 +119,7 @@ def _deck_summary(path: str, mtime_ns: int, size: int) -> tuple[dict[str, float]
 def deck_summary(path) -> tuple[dict[str, float], str]:
     """``read_deck``'s values and digest, read once per version of the file in a process (the
     scripts ask for them at several steps)."""
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"--inp {path}: no such deck file")
+    path = _deck_path(path)
     st = path.stat()
     values, digest = _deck_summary(str(path.resolve()), st.st_mtime_ns, st.st_size)
     return dict(values), digest
@@ -131,6 +136,10 @@ def with_deck(config):
         raise ValueError(f"--inp {config.inp}: name the uncertain parameters of the deck's model with --param "
                          "NAME=KIND:A,B (e.g. --param C10=lognormal:0.0062,0.0011)")
     values, digest = deck_summary(config.inp)
+    bad = sorted(k for k, v in values.items() if not np.isfinite(v))
+    if bad:
+        raise ValueError(f"--inp {config.inp}: the deck gives {', '.join(bad)} no finite value (NaN or inf in its "
+                         "material, section or load cards); correct the deck")
     pset = parameter_set(config)
     unknown = sorted(({*pset.names} | {n for n, _ in pset.fixed}) - set(values))
     if unknown:
