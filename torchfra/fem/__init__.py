@@ -3,7 +3,8 @@
 Build a :class:`Model` from a :class:`Mesh`, add energy terms (:class:`Hex20Solid` with a
 :class:`NeoHookean` or :class:`MooneyRivlin` material, :class:`Truss`, :class:`CavityPressure`,
 :class:`FollowerPressure`, and the candidate terms :class:`Gravity`, :class:`ElasticSupport`,
-:class:`SensorCavityPressure`),
+:class:`SensorCavityPressure`, and :class:`ViscousOverstress` with
+:func:`solve_history` for a time trace with history variables),
 constrain it (``clamp``, ``prescribe``, ``rigid``, ``embed``) and call :func:`solve` with one
 tensor per parameter holding every member's value.
 """
@@ -19,10 +20,11 @@ from .solid import Hex20Solid
 from .springs import ElasticSupport, support_face
 from .terms import Term, TermOutput
 from .truss import Truss
+from .viscoelastic import HistorySolution, ViscousOverstress, solve_history, with_viscoelasticity
 
 __all__ = [
     "CavityPressure", "ElasticSupport", "Evaluation", "FollowerPressure", "Gravity", "Hex20Solid", "Material",
     "Mesh", "MeshError", "Model", "MooneyRivlin", "NeoHookean", "NewtonOptions", "ParameterError",
     "SensorCavityPressure", "Solution", "Term", "TermOutput", "Truss", "rotation_matrix", "solve",
-    "support_face", "WarmStart",
+    "support_face", "WarmStart", "HistorySolution", "ViscousOverstress", "solve_history", "with_viscoelasticity",
 ]

@@ -16,6 +16,9 @@ pressure_sensor       pressure_gain (1),           ``with_pressure_sensor(model)
                       pressure_offset (0) MPa
 cavity_offset         delta_y (0) mm               ``model.morph("delta_y", field, info)`` (e.g.
                                                    ``build_actuator_model(cavity_offset=True)``)
+viscoelasticity       g1 (0), tau1 s [g2, tau2]    ``with_viscoelasticity(model)``, solved along a
+                                                   time trace by ``solve_history`` (history
+                                                   variables; ``fem.viscoelastic``)
 ====================  ===========================  ==============================================
 
 Fiber stiffness ``E_fiber`` (MPa) is a parameter of the base model's ``Truss`` (``fiber_stiffness``

@@ -341,8 +341,7 @@ def solve(
             a_need, local_need = pack.split(x[need])
             good = torch.isfinite(da).all(dim=1)
             da_safe = torch.where(good[:, None], da, torch.zeros_like(da))
-            new_local = model.local_update(a_need, da_safe, _members(params, need),
-                                           torch.as_tensor(lam[need], dtype=dtype), local_need)
+            new_local = model.local_update(a_need, da_safe, _members(params, need), load(need, lam[need]), local_need)
             dx = pack.join(da_safe, [None if l is None else nl - l for nl, l in zip(new_local, local_need)])
             for j, m in enumerate(need):
                 dot = abs(float(da_safe[j] @ rhs[j]))
