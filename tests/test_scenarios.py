@@ -143,3 +143,23 @@ def test_suite_driver_selects_cases_and_tabulates_by_the_snr_after_the_base_fit(
     assert cells[3] == ">=25" and cells[4] == "2" and cells[6] == "29" and cells[7] == "100%"
     assert cells[-2] == "100", cells  # the reused diagnosis' 1 s is not a cost
     assert [c.strip() for c in low.split("|")][7] == "0%"
+
+
+def test_creeping_body_is_generated_with_history_variables(cache, monkeypatch):
+    """The viscoelastic scenario marches the FE model with a Prony term in its element kernel
+    (fem.viscoelastic), not the diagnosis' load-level approximation: on the load-unload cycle the
+    body lags (more displacement coming down than going up at the same recorded pressure), and the
+    recorded pressure is the cavity's."""
+    calls = []
+    real = fem.solve_history
+    monkeypatch.setattr(fem, "solve_history", lambda *a, **k: calls.append(a[1]) or real(*a, **k))
+    rec, clean, meta = scenarios.make_scenario("viscoelasticity", 3, noise=0.5, seed=1, cache_dir=cache,
+                                               resolution=1, frames=8, truth_c10=0.0062)
+    assert len(calls) == 1 and float(calls[0]["g1"][0]) == 0.4 and float(calls[0]["tau1"][0]) == scenarios.VISCO_TAU1
+    assert meta["parameters"]["g1"] == 0.4 and meta["parameters"]["tau1"] == scenarios.VISCO_TAU1
+    assert np.allclose(meta["trace"]["true"], meta["trace"]["recorded"])
+    p = np.asarray(meta["trace"]["recorded"])
+    up, down = 1, 5  # frames at t = 2/8 and 6/8: the same pressure on either side of the peak (t = 4/8)
+    assert abs(p[up] - p[down]) < 1e-12
+    assert np.abs(clean[down]).sum() > 1.05 * np.abs(clean[up]).sum()
+    assert meta["snr"] > 5  # against the elastic body at the same trace (noise 0.5 mm)
