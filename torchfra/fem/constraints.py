@@ -7,20 +7,22 @@
   constraint even at finite strain (rows of ``T``);
 - rigid node sets (a face that stays flat and undeformed): 6 unknowns per body, a translation
   ``u_ref`` (rows of ``T``) and a rotation vector ``theta`` with the exact finite rotation
-  ``R = exp([theta]x)`` (Rodrigues). Its first and second derivatives come from torch.func.
+  ``R = exp([theta]x)`` (Rodrigues), with its first and second derivatives in closed form
+  (``rotation_jacobian``, ``rotation_work_hessian``; pinned to torch.func in the tests).
 
 Reduced residual ``r_a = J^T r_u`` and tangent ``K_a = J^T K_u J + sum_i r_i . d2u_i/da2`` with
 ``J = du/da``.
 """
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 import torch
-from torch.func import hessian, jacfwd, vmap
+from torch.func import vmap
 
 
 def _csr(M: sp.csr_matrix, dtype) -> torch.Tensor:
@@ -55,6 +57,78 @@ def rotation_matrix(theta: torch.Tensor) -> torch.Tensor:
     B = torch.where(small, 0.5 - a / 24 + a * a / 720, (1 - torch.cos(s)) / a_safe)
     W = _skew(theta)
     return torch.eye(3, dtype=theta.dtype, device=theta.device) + A * W + B * (W @ W)
+
+
+def _rodrigues_coefficients(a: torch.Tensor):
+    """``A = sin s / s``, ``B = (1 - cos s) / s^2`` (s^2 = a) and their first and second derivatives
+    with respect to ``a``: six tensors of a's shape. Power series below a = 0.25 (where the closed
+    forms lose digits to cancellation), closed forms above."""
+    small = a < 0.25
+    s2 = torch.where(small, torch.full_like(a, 1.0), a)
+    s = torch.sqrt(s2)
+    sin, cos = torch.sin(s), torch.cos(s)
+    exact = (sin / s, (s * cos - sin) / (2 * s**3), (3 * sin - 3 * s * cos - s2 * sin) / (4 * s**5),
+             (1 - cos) / s2, (s * sin - 2 + 2 * cos) / (2 * s2**2),
+             (s2 * cos - 5 * s * sin + 8 - 8 * cos) / (4 * s2**3))
+    # A = sum (-1)^n a^n / (2n+1)!, B = sum (-1)^n a^n / (2n+2)!, n < 12 (remainder < 1e-30 at a = 0.25)
+    series = [torch.zeros_like(a) for _ in range(6)]
+    for n in range(12):
+        for off, f in ((0, math.factorial(2 * n + 1)), (3, math.factorial(2 * n + 2))):
+            c = (-1) ** n / f
+            series[off] = series[off] + c * a**n
+            if n >= 1:
+                series[off + 1] = series[off + 1] + c * n * a ** (n - 1)
+            if n >= 2:
+                series[off + 2] = series[off + 2] + c * n * (n - 1) * a ** (n - 2)
+    return tuple(torch.where(small, sr, ex) for sr, ex in zip(series, exact))
+
+
+def _levi_civita(dtype) -> torch.Tensor:
+    e = torch.zeros(3, 3, 3, dtype=dtype)
+    for i, j, k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+        e[i, j, k], e[j, i, k] = 1.0, -1.0
+    return e
+
+
+def rotation_jacobian(theta: torch.Tensor) -> torch.Tensor:
+    """``dR_ij / dtheta_t`` of ``rotation_matrix`` in closed form for theta (N, 3): (N, 3, 3, 3) [n, i, j, t].
+
+    With ``R = I + A W + B W^2``, ``W = [theta]x``, ``a = |theta|^2``:
+    ``dR/dtheta_t = 2 A' theta_t W + A E_t + 2 B' theta_t W^2 + B (E_t W + W E_t)``, ``E_t = [e_t]x``.
+    Pinned to torch.func's ``jacfwd`` in tests/test_constraints_rotation.py."""
+    a = (theta * theta).sum(-1)
+    A, A1, _, B, B1, _ = _rodrigues_coefficients(a)
+    W = _skew(theta)
+    E = _skew(torch.eye(3, dtype=theta.dtype))  # (3 [t], 3, 3)
+    W2 = W @ W
+    EW = torch.einsum("tij,njk->nikt", E, W) + torch.einsum("nij,tjk->nikt", W, E)
+    th = theta[:, None, None, :]
+    return (2 * A1[:, None, None, None] * th * W[..., None] + A[:, None, None, None] * E.permute(1, 2, 0)[None]
+            + 2 * B1[:, None, None, None] * th * W2[..., None] + B[:, None, None, None] * EW)
+
+
+def rotation_work_hessian(theta: torch.Tensor, M: torch.Tensor) -> torch.Tensor:
+    """Hessian in theta of ``f = sum_ij M_ij R_ij(theta)`` for theta (N, 3), M (N, 3, 3): (N, 3, 3).
+
+    ``f = tr M + A (w . theta) + B q``, with ``w_k = -eps_ijk M_ij`` (so that ``sum M_ij W_ij = w . theta``),
+    ``q = theta^T S theta - a tr M`` (``W^2 = theta theta^T - a I``), S = sym(M); hence
+    ``H = 4 A'' (w.theta) tt^T + 2 A' ((w.theta) I + t w^T + w t^T) + 4 B'' q tt^T
+    + 2 B' (q I + t g^T + g t^T) + B (2 S - 2 tr M I)`` with ``g = 2 S theta - 2 tr M theta``.
+    Pinned to torch.func's ``hessian`` in tests/test_constraints_rotation.py."""
+    a = (theta * theta).sum(-1)
+    A, A1, A2, B, B1, B2 = _rodrigues_coefficients(a)
+    w = -torch.einsum("ijk,nij->nk", _levi_civita(theta.dtype), M)
+    S = 0.5 * (M + M.transpose(-1, -2))
+    trM = M.diagonal(dim1=-2, dim2=-1).sum(-1)
+    wt = (w * theta).sum(-1)
+    q = torch.einsum("ni,nij,nj->n", theta, S, theta) - a * trM
+    g = 2 * torch.einsum("nij,nj->ni", S, theta) - 2 * trM[:, None] * theta
+    I = torch.eye(3, dtype=theta.dtype).expand(theta.shape[0], 3, 3)
+    tt = theta[:, :, None] * theta[:, None, :]
+    sc = lambda c: c[:, None, None]  # noqa: E731
+    return (4 * sc(A2 * wt) * tt + 2 * sc(A1) * (sc(wt) * I + theta[:, :, None] * w[:, None, :] + w[:, :, None] * theta[:, None, :])
+            + 4 * sc(B2 * q) * tt + 2 * sc(B1) * (sc(q) * I + theta[:, :, None] * g[:, None, :] + g[:, :, None] * theta[:, None, :])
+            + sc(B) * (2 * S - 2 * sc(trM) * I))
 
 
 @dataclass
@@ -150,7 +224,18 @@ class DofMap:
         return r
 
     def _rotation_jacobians(self, a):
-        return [vmap(jacfwd(rotation_matrix))(a[:, b.columns[3:]]) for b in self.bodies]
+        return [rotation_jacobian(a[:, b.columns[3:]]) for b in self.bodies]
+
+    def jacobian_times(self, a: torch.Tensor, V: torch.Tensor) -> torch.Tensor:
+        """``J(a) V`` for every member: (N, n_full, k), with ``T V`` computed once per ``V``."""
+        if getattr(self, "_TV_key", None) is not V:
+            self._TV_key, self._TV = V, torch.as_tensor(self.T @ V.numpy())
+        W = self._TV.expand(a.shape[0], -1, -1).clone()
+        for b, dRdt in zip(self.bodies, self._rotation_jacobians(a)):
+            d = torch.einsum("nijt,kj->nkit", dRdt, b.dX)  # (N, k, 3, 3): du_(node k, i) / dtheta_t
+            rows = torch.as_tensor(3 * b.nodes[:, None] + np.arange(3)).ravel()
+            W[:, rows] += torch.einsum("nkit,tc->nkic", d, V[torch.as_tensor(b.columns[3:])]).reshape(a.shape[0], -1, V.shape[1])
+        return W
 
     def jacobian(self, a: torch.Tensor, transposed: bool = False) -> list[sp.csr_matrix]:
         """J = du/da per member (scipy CSR), or J^T (built as CSR directly: no format conversion
@@ -178,10 +263,5 @@ class DofMap:
         for b in self.bodies:
             r_nodes = r_full[:, torch.as_tensor(3 * b.nodes[:, None] + np.arange(3))]
             M = torch.einsum("nki,kj->nij", r_nodes, b.dX)
-
-            def work(theta, m):
-                return (rotation_matrix(theta) * m).sum()
-
-            H = vmap(hessian(work))(a[:, b.columns[3:]], M)
-            out.append((b.columns[3:], H.numpy()))
+            out.append((b.columns[3:], rotation_work_hessian(a[:, b.columns[3:]], M).numpy()))
         return out

@@ -190,7 +190,7 @@ class HyperReducedModel:
         lam = torch.as_tensor(load_factors, dtype=dtype)
         V = basis.V.numpy()
         u = model.displacement(states, lam)
-        W = [torch.as_tensor(J @ V) for J in model.dofmap.jacobian(states)]  # (n_full, k) per state
+        W = model.dofmap.jacobian_times(states, basis.V)  # (M, n_full, k)
         self.terms: list[tuple[Term, torch.Tensor, torch.Tensor]] = []
         self.blocks: list[np.ndarray] = []
         self.sampled_blocks: list[int] = []
@@ -249,7 +249,7 @@ class HyperReducedModel:
         a = q @ V.T
         u = model.displacement(a, load_factor)
         N, n = a.shape[0], model.dofmap.n_full
-        W = torch.stack([torch.as_tensor(J @ V.numpy()) for J in model.dofmap.jacobian(a)])  # (N, n_full, k)
+        W = model.dofmap.jacobian_times(a, V)  # (N, n_full, k)
         R = torch.zeros(N, V.shape[1], dtype=a.dtype)
         K = torch.zeros(N, V.shape[1], V.shape[1], dtype=a.dtype) if tangent else None
         r_full = torch.zeros(N, n, dtype=a.dtype)
