@@ -4,6 +4,7 @@ base model, rank the candidate physics by score tests, refit the best and decide
     python scripts/diagnose.py my_dic.csv --noise 1.0 --name my_diag
     python scripts/diagnose.py my_dic.csv --candidates gravity,compliant_base
     python scripts/diagnose.py matchid_exports/ --pressure trace.csv --landmarks corners.csv   # a DIC export
+    python scripts/diagnose.py my_dic.csv --inp my_actuator.inp --camera -x    # your own model (a deck)
 
 writes runs/<name>/: diagnosis.json, residual_map.png, residual_over_time.png, ranking.png,
 observed_vs_models.png, posterior_added.png (when a candidate is accepted), TensorBoard events,
@@ -11,6 +12,7 @@ and solves/ (every FE solve, reused when the diagnosis is run again).
 """
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -18,7 +20,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
+from torchfra.cli import add_deck_flags, check_deck_flags  # noqa: E402
 from torchfra.discovery import ALL_CANDIDATES, DiagnosisError, diagnose  # noqa: E402
+from torchfra.forward import ForwardConfig, observed_surface  # noqa: E402
+from torchfra.physics import GRAVITY_DIRECTION, DeckModel  # noqa: E402
 from torchfra.io.dic_import import add_arguments, recording_path  # noqa: E402
 from torchfra.recordings import read_recording  # noqa: E402
 
@@ -33,13 +38,19 @@ def main(argv=None) -> dict:
     p.add_argument("--candidates", default="all", help=f"all, or a comma list of: {', '.join(ALL_CANDIDATES)}")
     p.add_argument("--name", default=None, help="run name (default: diagnose_<recording stem>)")
     p.add_argument("--runs-dir", default="runs")
-    p.add_argument("--mesh", type=int, default=1, help="mesh resolution of the diagnosis model")
+    p.add_argument("--mesh", type=int, default=1, help="mesh resolution of the diagnosis model (the paper's actuator; "
+                                                       "a deck has its own mesh)")
     p.add_argument("--load-steps", type=int, default=10)
     p.add_argument("--alpha", type=float, default=0.01, help="test level")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (recorded)")
     p.add_argument("--quiet", action="store_true")
     add_arguments(p)
+    add_deck_flags(p)
+    p.add_argument("--gravity", default=None, metavar="X,Y,Z",
+                   help="direction of the weight in the model's frame, for the gravity candidate (default 0,-1,0: "
+                        "the paper's actuator lies on its side)")
     a = p.parse_args(argv)
+    check_deck_flags(a, pressure_flag=None)  # --pressure is the DIC export's pressure trace here
     torch.set_num_threads(a.threads)
     cands = "all" if a.candidates == "all" else [c.strip() for c in a.candidates.split(",") if c.strip()]
     if cands != "all":
@@ -47,12 +58,28 @@ def main(argv=None) -> dict:
         if bad:
             raise DiagnosisError(f"--candidates: unknown candidate {bad[0]!r}; choose from {', '.join(ALL_CANDIDATES)}")
     run_dir = Path(a.runs_dir) / (a.name or f"diagnose_{Path(a.recording).stem}")
-    rec = read_recording(recording_path(a.recording, a, run_dir))
+    gravity = GRAVITY_DIRECTION
+    if a.gravity is not None:
+        try:
+            gravity = tuple(float(v) for v in a.gravity.split(","))
+        except ValueError:
+            gravity = ()
+        if len(gravity) != 3 or not all(map(math.isfinite, gravity)) or not any(gravity):
+            raise DiagnosisError(f"--gravity {a.gravity}: give the direction of the weight as three numbers X,Y,Z, "
+                                 "not all zero, e.g. 0,-1,0")
+        if a.inp is None and gravity != GRAVITY_DIRECTION:
+            raise DiagnosisError("--gravity: the paper's actuator lies on its side (weight along -y); another "
+                                 "direction needs your own model (--inp)")
+    deck = DeckModel(a.inp, a.camera, a.face.upper() if a.face else None, gravity) if a.inp else None
+    if deck is not None:
+        deck.values()  # a missing or unreadable deck is refused here, before any work
+    face = observed_surface(ForwardConfig(inp=a.inp, camera=a.camera, face=a.face or "")) if a.inp else None
+    rec = read_recording(recording_path(a.recording, a, run_dir, face))
     reused = len(list((run_dir / "solves").glob("solve_*.npz"))) if (run_dir / "solves").exists() else 0
     if reused and not a.quiet:
         print(f"resuming {run_dir}: {reused} FE solves on disk are reused")
     out = diagnose(rec, noise=a.noise, correlation=a.correlation, candidates=cands, run_dir=run_dir,
-                   resolution=a.mesh, load_steps=a.load_steps, alpha=a.alpha, progress=not a.quiet)
+                   resolution=a.mesh, load_steps=a.load_steps, alpha=a.alpha, progress=not a.quiet, deck=deck)
     out["threads"] = a.threads
     (run_dir / "diagnosis.json").write_text(json.dumps(out, indent=1, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
     if not a.quiet:

@@ -209,6 +209,11 @@ class _ScalingPhysics:
     def __init__(self, rec, amplitude):
         self.rec, self.A = rec, amplitude
 
+    def coordinate(self, name):
+        from torchfra.physics import COORDINATES
+
+        return COORDINATES[name]
+
     def observe(self, z):
         from torchfra.physics import Evaluation
 

@@ -120,7 +120,9 @@ class _ScalingActuator(ActuatorPhysics):
 
     A = None  # (P, 2) amplitudes, set by the test
 
-    def __init__(self, rec, candidates=(), resolution=1, load_steps=10, cache_dir=None, newton=None):
+    def __init__(self, rec, candidates=(), resolution=1, load_steps=10, cache_dir=None, newton=None, deck=None):
+        assert deck is None, "the stand-in is the paper's actuator"
+        self.deck, self.deck_values, self.deck_digest = None, None, None
         self.rec, self.candidates = rec, tuple(sorted(candidates))
         self.resolution, self.load_steps, self.newton = resolution, int(load_steps), {}
         self.names = ["C10"] + [p for c in self.candidates for p in CANDIDATE_PARAMETERS[c]]

@@ -78,6 +78,6 @@ def check_deck_flags(args, pressure_flag: str = "pressure") -> None:
         if args.face is not None:
             raise ValueError("--face names a surface of a deck: give the deck with --inp")
         return
-    if getattr(args, pressure_flag, None) is not None:
+    if pressure_flag and getattr(args, pressure_flag, None) is not None:
         flag = "--" + pressure_flag.replace("_", "-")
         raise ValueError(f"--inp {args.inp}: the deck's *DLOAD sets the pressure; drop {flag} (or change the deck)")

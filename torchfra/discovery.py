@@ -57,7 +57,7 @@ import torch
 from scipy import linalg, stats
 
 from .physics import (CANDIDATE_PARAMETERS, COORDINATES, HISTORY_DEPENDENT_CANDIDATES, LOAD_MAP_ONLY, NUISANCE,
-                      RIVALS, ActuatorPhysics, Evaluation, null_coordinate)
+                      RIVALS, ActuatorPhysics, DeckModel, Evaluation)
 from .recordings import Recording, RecordingError
 
 ALL_CANDIDATES = tuple(sorted(set(CANDIDATE_PARAMETERS) - set(RIVALS.values())))
@@ -273,7 +273,7 @@ def gauss_newton(phys: ActuatorPhysics, white: Whitener, free: list[str], z0: di
     Gauss-Newton with the exact sensitivities, prior Gaussian in the coordinates; the Laplace
     approximation at the MAP gives the covariance and the log evidence."""
     t0 = time.perf_counter()
-    coords = [COORDINATES[n] for n in free]
+    coords = [phys.coordinate(n) for n in free]
     mu = np.array([c.prior_mean for c in coords])
     sd = np.array([c.prior_std for c in coords])
     Z = phys.rec.Z
@@ -340,7 +340,7 @@ def scan_start(phys: ActuatorPhysics, white: Whitener, free: list[str], added: l
     other free parameters (the quadratic model's decrease, from the exact sensitivities the solve
     returns); the scan continues from the corrected point. Returns (start, solves, trace) with trace
     rows {added parameter: coordinate, "misfit": profiled objective}."""
-    coords = [COORDINATES[n] for n in free]
+    coords = [phys.coordinate(n) for n in free]
     mu = np.array([c.prior_mean for c in coords])
     sd = np.array([c.prior_std for c in coords])
     ia = [free.index(n) for n in added]
@@ -407,11 +407,11 @@ def load_map_start(phys: ActuatorPhysics, white: Whitener, free: list[str], adde
     could not leave. Returns (start, solves, trace) as :func:`scan_start`."""
     import itertools
 
-    coords = [COORDINATES[n] for n in free]
+    coords = [phys.coordinate(n) for n in free]
     mu = np.array([c.prior_mean for c in coords])
     sd = np.array([c.prior_std for c in coords])
     ib = [i for i, n in enumerate(free) if n not in added]
-    points = [dict(z0)] + [dict(z0) | {n: COORDINATES[n].clip(COORDINATES[n].coordinate(v)) for n, v in zip(added, vals)}
+    points = [dict(z0)] + [dict(z0) | {n: phys.coordinate(n).clip(phys.coordinate(n).coordinate(v)) for n, v in zip(added, vals)}
                            for vals in itertools.product(*(LOAD_MAP_GRIDS[n] for n in added))]
     best, start, trace = math.inf, dict(z0), []
     for z in points:
@@ -821,14 +821,22 @@ def _fit_report(fit: Fit, white: Whitener, frames_fit, frames_held, d: int) -> d
 def diagnose(rec: Recording, noise: float | None = None, correlation: float | None = None, candidates="all",
              run_dir=None, resolution: int = 1, load_steps: int = 10, alpha: float = 0.01,
              evidence_threshold: float = 5.0, held_out_every: int = 5, progress: bool = True,
-             max_refits: int | None = None) -> dict:
+             max_refits: int | None = None, deck: DeckModel | None = None) -> dict:
     """Diagnose ``rec`` (see the module docstring); returns the diagnosis (also written to
-    ``run_dir/diagnosis.json`` with figures when ``run_dir`` is given)."""
+    ``run_dir/diagnosis.json`` with figures when ``run_dir`` is given). ``deck``: the user's own
+    model (an Abaqus/CalculiX deck) instead of the paper's actuator at ``resolution``."""
     t_start = time.perf_counter()
     cands = ALL_CANDIDATES if candidates in ("all", None) else tuple(candidates)
     unknown = sorted(set(cands) - set(ALL_CANDIDATES))
     if unknown:
         raise DiagnosisError(f"unknown candidate {unknown[0]!r}; candidates: {', '.join(ALL_CANDIDATES)}")
+    not_available = {}
+    if deck is not None:
+        not_available = deck.available(cands)
+        if not_available and candidates not in ("all", None):
+            c, why = next(iter(not_available.items()))
+            raise DiagnosisError(f"candidate {c!r} on the deck {deck.path}: {why}; leave it out of --candidates")
+        cands = tuple(c for c in cands if c not in not_available)
     _check_recording(rec, held_out_every)
     run_dir = None if run_dir is None else Path(run_dir)
     cache = None if run_dir is None else run_dir / "solves"
@@ -849,7 +857,7 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
     bar = _Progress(progress)
 
     # 1. calibrate the base model
-    base_phys = ActuatorPhysics(rec, (), resolution, load_steps, cache)
+    base_phys = ActuatorPhysics(rec, (), resolution, load_steps, cache, deck=deck)
     c10_0, start_solves = _initial_c10(base_phys, white, fit_frames, bar)
     bar.phase("calibrating the base model (C10)", bar.FIT_SOLVES + 2)
     base = gauss_newton(base_phys, white, ["C10"], {"C10": math.log(c10_0)}, fit_frames, progress=bar.tick)
@@ -876,7 +884,7 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
                                "confounded with the material's nonlinearity; record unloading or a hold to test it")
         cands = tuple(c for c in cands if c not in not_testable)
     bar.phase("sensitivities of every candidate at the calibrated point", 1)
-    full = ActuatorPhysics(rec, cands, resolution, load_steps, cache)
+    full = ActuatorPhysics(rec, cands, resolution, load_steps, cache, deck=deck)
     ev_full = full.observe(full.null_point(c10))
     bar.tick(1)
     if not ev_full.ok:
@@ -901,7 +909,7 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
 
         def refit(combo, left):
             bar.phase(f"refitting with {' + '.join(combo)}", left * (bar.FIT_SOLVES + 2))
-            phys = ActuatorPhysics(rec, combo, resolution, load_steps, cache)
+            phys = ActuatorPhysics(rec, combo, resolution, load_steps, cache, deck=deck)
             rows = [next(r for r in ranking if r["name"] == c) for c in combo]
             free = ["C10"] + [p for r in rows for p in r["tested_parameters"] + r["nuisance_parameters"]]
             added = [p for p in free if p != "C10"]
@@ -913,7 +921,7 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
             ext = gauss_newton(phys, white, free, z0, fit_frames, progress=bar.tick)
             ext.solves += scan_solves
             rep = _fit_report(ext, white, fit_frames, held, len(free))
-            checks = _acceptance(ext, rep, base_report, combo, evidence_threshold, alpha, c10, free)
+            checks = _acceptance(ext, rep, base_report, combo, evidence_threshold, alpha, c10, free, phys)
             # a surrogate explains part of the mismatch: another candidate still significant on the
             # extended model's residual (score tests linearized at the base point) says so
             others = [r for r in ranking if r["name"] not in combo and r["dof"] > 0
@@ -943,7 +951,7 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
             # is shorter than the frame spacing: the body's physics is named only if it beats the lag
             # decisively
             bar.phase(f"fitting the rival of {' + '.join(best['candidates'])}: {rival[0]}", bar.FIT_SOLVES + 2)
-            phys = ActuatorPhysics(rec, (rival[0],), resolution, load_steps, cache)
+            phys = ActuatorPhysics(rec, (rival[0],), resolution, load_steps, cache, deck=deck)
             free = ["C10"] + list(CANDIDATE_PARAMETERS[rival[0]])
             z0, _, _ = load_map_start(phys, white, free, free[1:], phys.null_point(c10), fit_frames)
             rfit = gauss_newton(phys, white, free, z0, fit_frames, progress=bar.tick)
@@ -999,6 +1007,10 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
         "hysteresis": loop,
         "ranking": ranking,
         "not_testable": not_testable,
+        "not_available": not_available,
+        "model": ({"kind": "actuator", "resolution": resolution} if deck is None else
+                  {"kind": "deck", "path": str(deck.path), "camera": deck.camera, "face": deck.face,
+                   "digest": base_phys.deck_digest}),
         "tried": tried,
         "decision": decision,
         "missing_physics": ({"kind": "candidate", "name": decision} if decision not in ("none", "unexplained") else
@@ -1006,7 +1018,8 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
         "parameters": {"base": base_report["parameters"], "extended": accepted[2]["parameters"] if accepted else None},
         "fit_before": base_report,
         "fit_after": fit_after,
-        "cost": {"solves": fe_solves, "seconds": time.perf_counter() - t_start, "resolution": resolution,
+        "cost": {"solves": fe_solves, "seconds": time.perf_counter() - t_start,
+                 "resolution": resolution if deck is None else None,
                  "load_steps": load_steps, "ranking_solves": 1},
         "held_out_frames": [int(rec.frames[k]) for k in held],
     }
@@ -1068,14 +1081,14 @@ def _remaining_scores(E: np.ndarray, J: np.ndarray, names: list[str], fitted: li
 
 
 def _acceptance(fit: Fit, rep: dict, base_rep: dict, combo, threshold: float, alpha: float, c10: float,
-                free: list[str]) -> dict:
+                free: list[str], phys: ActuatorPhysics) -> dict:
     away, inside = True, True
     for c in combo:
         for p in CANDIDATE_PARAMETERS[c]:
             if p not in free or p in NUISANCE:  # a nuisance (tau1) has no null of its own
                 continue
-            co = COORDINATES[p]
-            null = null_coordinate(p, math.exp(fit.z["C10"]))
+            co = phys.coordinate(p)
+            null = phys.null_coordinate(p, math.exp(fit.z["C10"]))
             dist = abs(fit.z[p] - (0.0 if p in ("c_n", "c_t") else null)) / fit.std(p)
             away &= dist > 3.0
             nat = math.exp(fit.z[p]) if co.transform == "log" else fit.z[p]
@@ -1112,7 +1125,7 @@ def _initial_c10(phys: ActuatorPhysics, white: Whitener, frames, bar) -> tuple[f
     one solve (bounded Brent in log C10). Returns (C10, FE solves spent)."""
     from scipy.optimize import minimize_scalar
 
-    c = COORDINATES["C10"]
+    c = phys.coordinate("C10")
     bar.phase("starting point of C10 (one solve, scaling law)", bar.FIT_SOLVES + 3)
     # the softest solve that reaches the largest recorded pressure: the prior's 2.5 % quantile first
     # (a very soft one balloons before full pressure), then stiffer ones

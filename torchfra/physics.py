@@ -147,6 +147,43 @@ def null_coordinate(name: str, c10: float) -> float:
     return COORDINATES[name].coordinate(COORDINATES[name].null)
 
 
+# candidates that need the paper's actuator: a base face to put springs under, a cavity to move
+ACTUATOR_ONLY = {"compliant_base": "it puts springs under the actuator's base face instead of its clamp",
+                 "cavity_offset": "it moves the actuator's cavity by a morph of its mesh"}
+
+
+@dataclass(frozen=True)
+class DeckModel:
+    """The user's own model, an Abaqus/CalculiX deck (``torchfra.io.read_inp``), as the diagnosis'
+    base model: ``camera`` the side it is observed from (``forward.CAMERAS``), ``face`` the deck's
+    *SURFACE the camera observes (None: every face it sees), ``gravity`` the direction of the weight
+    for the gravity candidate. Its parameter values (C10, D1, E_fiber) are the base model's: the
+    prior of C10 is centred on the deck's, compressibility keeps the deck's K/mu at its null, and
+    the fibers' null is the deck's E_fiber."""
+
+    path: str
+    camera: str = "+x"
+    face: str | None = None
+    gravity: tuple[float, float, float] = GRAVITY_DIRECTION
+
+    def values(self) -> tuple[dict[str, float], str]:
+        from .forward import deck_summary
+
+        return deck_summary(self.path)
+
+    def available(self, candidates) -> dict[str, str]:
+        """The candidates this deck cannot carry, with why."""
+        values, _ = self.values()
+        out = {c: f"not for a deck: {why}" for c, why in ACTUATOR_ONLY.items() if c in candidates}
+        if "fiber_stiffness" in candidates and "E_fiber" not in values:
+            out["fiber_stiffness"] = "the deck has no fibers (no truss elements with *ELASTIC)"
+        if "mooney_rivlin" in candidates and "C01" in values:
+            out["mooney_rivlin"] = "the deck's material is Mooney-Rivlin already (its C01 is a base-model value)"
+        if "gravity" in candidates and "density" in values:
+            out["gravity"] = "the deck carries its weight already (*DLOAD GRAV)"
+        return out
+
+
 @dataclass
 class Evaluation:
     """Observations of one parameter point: Y (K, P, 2) mm at the recording's frames and points,
@@ -169,7 +206,7 @@ class ActuatorPhysics:
     the parameter point): a resumed run, or another recording with the same model, reuses them."""
 
     def __init__(self, rec: Recording, candidates=(), resolution: int = 1, load_steps: int = 10,
-                 cache_dir: str | Path | None = None, newton: dict | None = None):
+                 cache_dir: str | Path | None = None, newton: dict | None = None, deck: DeckModel | None = None):
         unknown = sorted(set(candidates) - set(CANDIDATE_PARAMETERS))
         if unknown:
             raise ValueError(f"unknown candidate physics {unknown}; known: {sorted(CANDIDATE_PARAMETERS)}")
@@ -177,15 +214,22 @@ class ActuatorPhysics:
         self.candidates = tuple(sorted(candidates))
         self.resolution, self.load_steps = int(resolution), int(load_steps)
         self.newton = {"stagnation_tol": 1e-6, **(newton or {})}
+        self.deck = deck
         material = fem.MooneyRivlin() if "mooney_rivlin" in self.candidates else None
-        self.model, self.info = build_actuator_model(
-            ActuatorGeometry(resolution=self.resolution), material=material,
-            base="compliant" if "compliant_base" in self.candidates else "clamp",
-            gravity=GRAVITY_DIRECTION if "gravity" in self.candidates else None,
-            cavity_offset="cavity_offset" in self.candidates)
+        self.deck_values, self.deck_digest = (None, None) if deck is None else deck.values()
+        if deck is None:
+            self.model, self.info = build_actuator_model(
+                ActuatorGeometry(resolution=self.resolution), material=material,
+                base="compliant" if "compliant_base" in self.candidates else "clamp",
+                gravity=GRAVITY_DIRECTION if "gravity" in self.candidates else None,
+                cavity_offset="cavity_offset" in self.candidates)
+            faces = None
+        else:
+            self.model, self.info = self._deck_model(material)
+            faces = _deck_faces(self.model.mesh, deck)
         self.model.finalize()
         self.mesh = self.model.mesh
-        faces = visible_faces(self.mesh, (1.0, 0.0, 0.0))
+        faces = visible_faces(self.mesh, (1.0, 0.0, 0.0)) if faces is None else faces
         try:
             op = ObservationOperator(self.mesh, faces, points=rec.X, point_ids=rec.point_ids, tol=0.05)
         except ObservationError as exc:
@@ -200,13 +244,61 @@ class ActuatorPhysics:
         self._memo: dict[str, tuple] = {}
         self.steps = np.arange(1, self.load_steps + 1) / self.load_steps
 
+    def _deck_model(self, material):
+        from .io.abaqus_read import read_inp
+
+        bad = self.deck.available(self.candidates)
+        if bad:
+            c, why = next(iter(bad.items()))
+            raise ValueError(f"candidate {c!r} on the deck {self.deck.path}: {why}")
+        model, _ = read_inp(self.deck.path)
+        if material is not None:
+            from .fem.candidates import with_material
+
+            with_material(model, material)
+        if "gravity" in self.candidates:
+            model.add(fem.Gravity(model.mesh, direction=self.deck.gravity))
+        return model, {"mesh": model.mesh, "deck": str(self.deck.path)}
+
     # -- parameters --------------------------------------------------------------------------------
+    def coordinate(self, name: str) -> Coordinate:
+        """The coordinate of ``name`` for this model: a deck centres C10's and D1's priors on its own
+        values and puts the fibers' null at its E_fiber."""
+        from dataclasses import replace
+
+        c = COORDINATES[name]
+        if self.deck_values is None:
+            return c
+        v = self.deck_values
+        if name == "C10":
+            return replace(c, prior_mean=math.log(v["C10"]))
+        if name == "D1" and "D1" in v:
+            return replace(c, prior_mean=math.log(v["D1"]))
+        if name == "E_fiber" and "E_fiber" in v:
+            return replace(c, prior_mean=math.log(v["E_fiber"]), null=v["E_fiber"])
+        return c
+
     def coordinates(self) -> list[Coordinate]:
-        return [COORDINATES[n] for n in self.names]
+        return [self.coordinate(n) for n in self.names]
+
+    def null_coordinate(self, name: str, c10: float) -> float:
+        """The coordinate at which parameter ``name`` switches its candidate off, at C10 = ``c10``."""
+        if self.deck_values is not None and name == "D1":
+            return math.log(self._deck_d1(c10))
+        if self.deck_values is not None and name == "E_fiber":
+            return math.log(self.deck_values["E_fiber"])
+        return null_coordinate(name, c10)
+
+    def _deck_d1(self, c10):
+        """The deck's compressibility at C10 = ``c10``: its K/mu kept (D1 = 0 in the deck: 1/(1000 C10))."""
+        v = self.deck_values
+        if v.get("D1", 0.0) > 0:
+            return v["D1"] * v["C10"] / c10
+        return 1.0 / (BULK_RATIO * c10)
 
     def null_point(self, c10: float) -> dict[str, float]:
         """Every candidate at its null, C10 as given (coordinates)."""
-        return {n: (math.log(c10) if n == "C10" else null_coordinate(n, c10)) for n in self.names}
+        return {n: (math.log(c10) if n == "C10" else self.null_coordinate(n, c10)) for n in self.names}
 
     def _natural(self, z: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         return {n: COORDINATES[n].natural(z[n]) for n in z}
@@ -223,9 +315,21 @@ class ActuatorPhysics:
         nat = self._natural(z)
         c10 = nat["C10"].reshape(-1)
         one = torch.ones_like(c10)
-        p = {"C10": c10, "D1": nat["D1"].reshape(-1) if "D1" in nat else 1.0 / (BULK_RATIO * c10),
-             "E_fiber": nat["E_fiber"].reshape(-1) if "E_fiber" in nat else E_FIBER * one,
+        if self.deck_values is None:
+            d1, e_fiber = 1.0 / (BULK_RATIO * c10), E_FIBER * one
+        else:  # the deck's other values as they are; its K/mu kept as C10 moves
+            v = self.deck_values
+            d1 = (v["D1"] * v["C10"] / c10) if v.get("D1", 0.0) > 0 else 1.0 / (BULK_RATIO * c10)
+            e_fiber = v.get("E_fiber", E_FIBER) * one
+        p = {"C10": c10, "D1": nat["D1"].reshape(-1) if "D1" in nat else d1,
+             "E_fiber": nat["E_fiber"].reshape(-1) if "E_fiber" in nat else e_fiber,
              "P": self._pressure_scale(nat) * one}
+        if self.deck_values is not None:
+            needed = set(self.model.param_names())
+            p = {k: val for k, val in p.items() if k in needed}
+            for k, val in self.deck_values.items():
+                if k in needed and k not in p:
+                    p[k] = float(val) * one
         if "mooney_rivlin" in self.candidates:
             p["C01"] = nat["C01"].reshape(-1)
         if "gravity" in self.candidates:
@@ -251,7 +355,9 @@ class ActuatorPhysics:
 
     # -- evaluation ----------------------------------------------------------------------------------
     def _key(self, z: dict[str, float]) -> str:
-        desc = {"resolution": self.resolution, "candidates": self.fe_candidates, "steps": self.load_steps,
+        desc = {"resolution": self.resolution if self.deck is None else f"deck {self.deck_digest}",
+                "observed": None if self.deck is None else [self.deck.camera, self.deck.face],
+                "candidates": self.fe_candidates, "steps": self.load_steps,
                 "pmax": float(np.max(self.rec.pressure)), "newton": self.newton,
                 "z": {k: float(f"{v:.15e}") for k, v in sorted(z.items())}}
         return hashlib.sha256(json.dumps(desc, sort_keys=True).encode()).hexdigest()[:20]
@@ -348,6 +454,15 @@ class ActuatorPhysics:
         dY = g00[e] * Ys[i] + g10[e] * dYs[i] + g01[e] * Ys[i + 1] + g11[e] * dYs[i + 1]
         J = (1 - t)[:, None, None, None] * Js[i] + t[:, None, None, None] * Js[i + 1] + dY[..., None] * dlam[:, None, None, :]
         return Evaluation(z, list(self.names), Y, J, True, its, time.perf_counter() - t0, reused)
+
+
+def _deck_faces(mesh, deck: DeckModel):
+    from .forward import observed_faces
+
+    class _Seen:  # observed_faces reads camera and face
+        camera, face = deck.camera, deck.face
+
+    return observed_faces(mesh, _Seen)
 
 
 def _derivative(fn, z: dict[str, torch.Tensor], name: str) -> np.ndarray:
