@@ -218,3 +218,38 @@ def test_bad_traces_and_fractions_are_refused_by_name():
                       [1.0], [1.0])
     ts, ls, ends = time_increments([1.0, 2.0], [0.5, 0.5], max_dt=0.25, max_dlam=0.1)
     assert np.allclose(ts[-1], 2.0) and (ends >= 0).sum() == 2 and np.all(np.abs(np.diff(ls)) <= 0.1 + 1e-12)
+
+
+def test_the_diagnosis_creeping_body_on_the_fe_history_model():
+    """``physics.HistoryPhysics`` (the refit model of the diagnosis' viscoelasticity): on a 5-frame
+    load-unload recording of the actuator (resolution 1) that starts at a positive pressure,
+    - the first frame is the relaxed body: the elastic base model at that pressure, whatever g1;
+    - g1 = 0 is the base model at every frame (ActuatorPhysics, an independent path: its load
+      steps read off by Hermite interpolation, error < 1e-4 mm);
+    - with g1 = 0.3 the body lags: more displacement coming down than going up at equal pressure;
+      the forward-difference sensitivities are finite and nonzero for every parameter."""
+    import math
+
+    from torchfra.physics import ActuatorPhysics, HistoryPhysics
+    from torchfra.recordings import Recording
+    from torchfra.scenarios import dic_grid
+    from torchfra.geometry.actuator import ActuatorGeometry, actuator_mesh
+
+    mesh = actuator_mesh(ActuatorGeometry(resolution=1))
+    X = dic_grid(mesh, 6.0)
+    t = np.array([0.0, 0.25, 0.5, 0.75, 1.0])
+    p = 0.022 * np.array([0.3, 0.65, 1.0, 0.65, 0.3])
+    rec = Recording(np.arange(5), t, p, np.arange(len(X)), X, np.zeros((5, len(X), 2)), "cycle")
+    hp = HistoryPhysics(rec, resolution=1)
+    z = {"C10": math.log(0.0062), "g1": 0.3, "tau1": math.log(0.3)}
+    ev = hp.observe(z)
+    null = hp.march(z | {"g1": 0.0})
+    base = ActuatorPhysics(rec, (), 1, 10).observe({"C10": z["C10"]})
+    scale = float(np.abs(base.Y).max())
+    assert ev.ok and scale > 1.0
+    assert float(np.abs(null - base.Y).max()) < 1e-4 * scale
+    assert float(np.abs(ev.Y[0] - base.Y[0]).max()) < 1e-8 * scale  # at rest at the first frame
+    for up, down in ((1, 3), (0, 4)):
+        assert np.abs(ev.Y[down]).sum() > np.abs(ev.Y[up]).sum() > 0
+    assert np.isfinite(ev.J).all() and (np.abs(ev.J).reshape(-1, 3).max(0) > 0).all()
+    assert hp.marches == 5  # Y and one forward difference per parameter

@@ -472,3 +472,106 @@ def _derivative(fn, z: dict[str, torch.Tensor], name: str) -> np.ndarray:
         zz = {k: fwAD.make_dual(v, torch.ones_like(v)) if k == name else v for k, v in z.items()}
         out = fwAD.unpack_dual(fn(zz))
         return np.zeros(out.primal.shape) if out.tangent is None else out.tangent.numpy().copy()
+
+
+class HistoryPhysics:
+    """The creeping body of the ``viscoelasticity`` candidate with history variables in its element
+    kernel (``fem.viscoelastic``), seen through a recording: the FE model the load-level
+    approximation of :class:`ActuatorPhysics` stands in for (it misses 5-8 % of the effect on the
+    actuator, ``scripts/study_viscoelastic.py``). Same interface as ``ActuatorPhysics`` for the
+    parameters ``C10, g1, tau1`` (coordinates: log, linear, log; tau1 in units of the recording's
+    duration, the body fully relaxed at the first frame's pressure, as the candidate takes it).
+
+    Each observation marches the FE model through the recording's frames (steps of at most
+    ``dt_fraction`` tau1 and 0.1 in load factor) and its sensitivities are forward differences
+    (one march per parameter): ``1 + 3`` marches per evaluation, each kept in ``cache_dir``."""
+
+    STEPS = {"C10": 1e-4, "g1": 1e-4, "tau1": 1e-3}  # forward-difference steps in the coordinates
+
+    def __init__(self, rec: Recording, resolution: int = 1, cache_dir=None, deck: DeckModel | None = None,
+                 dt_fraction: float = 0.5, newton: dict | None = None):
+        self.base = ActuatorPhysics(rec, ("viscoelasticity",), resolution, 2, None, newton, deck)
+        self.rec, self.deck, self.resolution = rec, deck, int(resolution)
+        self.names = list(self.base.names)  # C10, g1, tau1
+        self.dt_fraction = float(dt_fraction)
+        self.newton = {"stagnation_tol": 1e-6, **(newton or {})}
+        self.cache_dir = None if cache_dir is None else Path(cache_dir)
+        if deck is None:
+            self.model, _ = build_actuator_model(ActuatorGeometry(resolution=self.resolution))
+        else:
+            from .io.abaqus_read import read_inp
+
+            self.model, _ = read_inp(deck.path)
+        fem.with_viscoelasticity(self.model)
+        self.model.finalize()
+        self.n_nodes = self.base.mesh.n_nodes
+        self.marches = 0
+        self._memo: dict[str, np.ndarray | None] = {}
+
+    def coordinate(self, name: str) -> Coordinate:
+        return self.base.coordinate(name)
+
+    def null_coordinate(self, name: str, c10: float) -> float:
+        return self.base.null_coordinate(name, c10)
+
+    def _key(self, z: dict[str, float]) -> str:
+        desc = {"model": "actuator" if self.deck is None else f"deck {self.base.deck_digest}",
+                "resolution": self.resolution, "observed": None if self.deck is None else [self.deck.camera, self.deck.face],
+                "times": np.asarray(self.rec.times, dtype=float).tolist(),
+                "pressure": np.asarray(self.rec.pressure, dtype=float).tolist(), "dt": self.dt_fraction,
+                "newton": self.newton, "z": {k: float(f"{v:.15e}") for k, v in sorted(z.items())}}
+        return hashlib.sha256(json.dumps(desc, sort_keys=True).encode()).hexdigest()[:20]
+
+    def march(self, z: dict[str, float]) -> np.ndarray | None:
+        """Y (K, P, 2) at the recording's frames for coordinates ``z``, None if the march failed."""
+        key = self._key(z)
+        if key in self._memo:
+            return self._memo[key]
+        path = None if self.cache_dir is None else self.cache_dir / f"history_{key}.npz"
+        if path is not None and path.exists():
+            with np.load(path, allow_pickle=False) as f:
+                Y = f["Y"] if bool(f["ok"]) else None
+            self._memo[key] = Y
+            return Y
+        zt = {k: torch.tensor([v], dtype=torch.float64) for k, v in z.items()}
+        params = self.base.params_of(zt)
+        nat = self.base._natural(zt)
+        params["g1"], params["tau1"] = nat["g1"].reshape(-1), nat["tau1"].reshape(-1)
+        lam = self.base.frame_loads({**zt, "g1": torch.zeros(1, dtype=torch.float64)}).numpy()  # the pressures'
+        t = normalized_time(self.rec.times)
+        sol = fem.solve_history(self.model, params, t[1:], lam[1:], max_dt=self.dt_fraction * float(nat["tau1"]),
+                                options=fem.NewtonOptions(**self.newton), t0=float(t[0]), relaxed_at=float(lam[0]))
+        self.marches += 1
+        ok = bool(sol.converged[0])
+        Y = None
+        if ok:
+            u = torch.cat([sol.u_start[:, None], sol.u], dim=1)[0, :, : self.n_nodes].numpy()  # (K, n, 3)
+            Y = self.base._observed(u)
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(path.stem + ".tmp.npz")
+            np.savez(tmp, Y=Y if ok else np.zeros(0), ok=ok)
+            tmp.replace(path)
+        self._memo[key] = Y
+        return Y
+
+    def observe(self, z: dict[str, float]) -> Evaluation:
+        import time
+
+        t0 = time.perf_counter()
+        z = {n: float(z[n]) for n in self.names}
+        Y = self.march(z)
+        K, P, d = self.rec.n_frames, self.base.W.shape[0], len(self.names)
+        if Y is None:
+            return Evaluation(z, list(self.names), np.full((K, P, 2), np.nan), np.full((K, P, 2, d), np.nan), False,
+                              0, time.perf_counter() - t0)
+        J = np.zeros((K, P, 2, d))
+        for i, n in enumerate(self.names):
+            c = self.coordinate(n)
+            h = self.STEPS[n] if z[n] + self.STEPS[n] == c.clip(z[n] + self.STEPS[n]) else -self.STEPS[n]
+            Yh = self.march(z | {n: z[n] + h})
+            if Yh is None:
+                return Evaluation(z, list(self.names), Y, np.full((K, P, 2, d), np.nan), False, 0,
+                                  time.perf_counter() - t0)
+            J[..., i] = (Yh - Y) / h
+        return Evaluation(z, list(self.names), Y, J, True, 0, time.perf_counter() - t0)

@@ -47,7 +47,7 @@ gravity              density (t/mm^3)    1.2e-11, 3e-11, 1e-10   5.6, 13.9, 46.1
 compliant_base       c (mm^3/N)          1000, 2500, 25000       2.0, 2.6, 3.0
 pressure_sensor      offset (MPa)        1.5e-4, 5e-4, 1.5e-3    4.9, 16.5, 50.0
 cavity_offset        delta_y (mm)        -0.25, -0.5, -1.0       6.8, 14.6, 33.2
-viscoelasticity      g1 (1)              0.05, 0.15, 0.4         6.1, 19.9, 66.4
+viscoelasticity      g1 (1)              0.05, 0.15, 0.4         6.6, 21.2, 69.6
 stiff_base_region    C10 factor          1.2, 2, 6               5.9, 18.4, 34.7
 fiber_debond         length (mm)         12, 20, 28              6.1, 11.1, 21.2
 sensor_lag           tau (1)             0.004, 0.012, 0.035     5.7, 17.1, 49.9
@@ -140,7 +140,7 @@ EFFECTS = {e.name: e for e in (
     Effect("pressure_sensor", "library", "pressure_offset", "MPa", 0.0, 0.0, PRESSURE_MAX,
            (0.00015, 0.0005, 0.0015), (4.93, 16.49, 49.99)),
     Effect("cavity_offset", "library", "delta_y", "mm", 0.0, -1.0, 0.5, (-0.25, -0.5, -1.0), (6.84, 14.55, 33.19)),
-    Effect("viscoelasticity", "library", "g1", "1", 0.0, 0.0, 0.95, (0.05, 0.15, 0.4), (6.11, 19.85, 66.35),
+    Effect("viscoelasticity", "library", "g1", "1", 0.0, 0.0, 0.95, (0.05, 0.15, 0.4), (6.55, 21.19, 69.6),
            trace="cycle"),
     Effect("stiff_base_region", "outside", "C10_factor", "1", 1.0, 1.0, math.inf,
            (1.2, 2.0, 6.0), (5.87, 18.4, 34.72)),

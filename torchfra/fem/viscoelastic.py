@@ -243,7 +243,7 @@ class HistorySolution:
     """Results of a time-stepped solve at the trace's points.
 
     times, load_factors (T,); u (N, T, n_nodes, 3) (NaN where a member did not get there); status (N,);
-    time_reached (N,); increments, iterations (N,); timings.
+    time_reached (N,); increments, iterations (N,); timings; u_start (N, n_nodes, 3).
     """
 
     times: np.ndarray
@@ -254,18 +254,21 @@ class HistorySolution:
     increments: np.ndarray
     iterations: np.ndarray
     timings: dict[str, float] = field(default_factory=dict)
+    u_start: torch.Tensor | None = None  # (N, n_nodes, 3): the relaxed state the march starts from
 
     @property
     def converged(self) -> np.ndarray:
         return self.status == CONVERGED
 
 
-def time_increments(times, load_factors, max_dt: float | None = None, max_dlam: float = 0.1):
-    """The increments of a trace starting at rest at ``t = 0``, ``lambda = 0``: every interval between
-    trace points split evenly so that no step is longer than ``max_dt`` nor changes the load factor by
-    more than ``max_dlam``. Returns (times, load factors, index of the trace point each step ends at or -1)."""
-    t = np.concatenate([[0.0], np.asarray(times, dtype=np.float64)])
-    lam = np.concatenate([[0.0], np.asarray(load_factors, dtype=np.float64)])
+def time_increments(times, load_factors, max_dt: float | None = None, max_dlam: float = 0.1, t0: float = 0.0,
+                    lam0: float = 0.0):
+    """The increments of a trace starting at rest at ``t0``, ``lam0`` (default 0, 0): every interval
+    between trace points split evenly so that no step is longer than ``max_dt`` nor changes the load
+    factor by more than ``max_dlam``. Returns (times, load factors, index of the trace point each step
+    ends at or -1)."""
+    t = np.concatenate([[float(t0)], np.asarray(times, dtype=np.float64)])
+    lam = np.concatenate([[float(lam0)], np.asarray(load_factors, dtype=np.float64)])
     if t.ndim != 1 or lam.shape != t.shape:
         raise ValueError("times and load_factors must be 1-D and of the same length")
     if not (np.isfinite(t).all() and np.isfinite(lam).all()):
@@ -273,7 +276,7 @@ def time_increments(times, load_factors, max_dt: float | None = None, max_dlam: 
     if np.any(np.diff(t) <= 0):
         k = int(np.flatnonzero(np.diff(t) <= 0)[0])
         raise ValueError(f"trace point {k} is at time {t[k + 1]!r}, not after the previous one ({t[k]!r}); times "
-                         "must increase strictly from 0 (the body at rest)")
+                         f"must increase strictly from {t[0]:g} (the body at rest)")
     if np.any(np.abs(lam) > 1 + 1e-12):
         raise ValueError("load factors must lie in [-1, 1]")
     ts, ls, ends = [], [], []
@@ -291,10 +294,12 @@ def time_increments(times, load_factors, max_dt: float | None = None, max_dlam: 
 
 def solve_history(model: Model, params: dict[str, torch.Tensor], times, load_factors,
                   max_dt: float | None = None, max_dlam: float = 0.1, options: NewtonOptions | None = None,
-                  progress: bool | str = False) -> HistorySolution:
-    """March ``model`` through the load trace ``(times, load_factors)`` from rest at t = 0 for every
-    member (params: name -> (N,)), advancing the history of every :class:`ViscousOverstress` after
-    each converged increment. ``max_dt`` defaults to a quarter of the smallest relaxation time.
+                  progress: bool | str = False, t0: float = 0.0, relaxed_at: float = 0.0) -> HistorySolution:
+    """March ``model`` through the load trace ``(times, load_factors)`` for every member (params: name
+    -> (N,)), advancing the history of every :class:`ViscousOverstress` after each converged
+    increment. The body starts at time ``t0`` fully relaxed under the load factor ``relaxed_at``
+    (default: unloaded at t = 0): the long-term elastic equilibrium there, no overstress
+    (``HistorySolution.u_start``). ``max_dt`` defaults to a quarter of the smallest relaxation time.
 
     Each increment is one Newton solve warm-started from the previous state (cutbacks inside it only
     continue the load; the history of the increment is that of its full time step). A member that
@@ -306,20 +311,30 @@ def solve_history(model: Model, params: dict[str, torch.Tensor], times, load_fac
     visc = [t for t in model.terms if isinstance(t, ViscousOverstress)]
     if max_dt is None and visc:
         max_dt = 0.25 * min(float(params[f"tau{i}"].min()) for v in visc for i in range(1, v.n_terms + 1))
-    ts, ls, ends = time_increments(times, load_factors, max_dt, max_dlam)
+    if not 0.0 <= relaxed_at <= 1.0:
+        raise ValueError(f"relaxed_at is a load factor in [0, 1], got {relaxed_at!r}")
+    ts, ls, ends = time_increments(times, load_factors, max_dt, max_dlam, t0, relaxed_at)
     T = int((ends >= 0).sum())
     out_index = np.cumsum(ends >= 0) - 1
     for v in visc:
         v.reset(N, dtype)
     opt = options or NewtonOptions()
-    opt = NewtonOptions(**{**opt.__dict__, "initial_increment": 1.0})
     x = torch.zeros(N, _Packing(model).size, dtype=dtype)
-    u_out = torch.full((N, T, model.n_nodes, 3), float("nan"), dtype=dtype)
+    u_start = torch.zeros(N, model.n_nodes, 3, dtype=dtype)
     status = np.array([CONVERGED] * N, dtype=object)
-    t_reached, iterations = np.zeros(N), np.zeros(N, dtype=np.int64)
+    if relaxed_at > 0:  # the long-term body (no overstress before the first commit) at the starting load
+        first = solve(model, {**params, HISTORY_ROW: torch.arange(N, dtype=dtype)}, [relaxed_at], opt)
+        status[~first.converged] = DIVERGED
+        x = torch.nan_to_num(first.x_last)
+        u_start = first.u[:, 0]
+        for v in visc:
+            v._S0 = torch.nan_to_num(v.instantaneous_stress(torch.nan_to_num(u_start), params))
+    opt = NewtonOptions(**{**opt.__dict__, "initial_increment": 1.0})
+    u_out = torch.full((N, T, model.n_nodes, 3), float("nan"), dtype=dtype)
+    t_reached, iterations = np.full(N, float(t0)), np.zeros(N, dtype=np.int64)
     increments = np.zeros(N, dtype=np.int64)
     timings = {"newton": 0.0, "history": 0.0}
-    t_prev, l_prev = 0.0, 0.0
+    t_prev, l_prev = float(t0), float(relaxed_at)
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -362,4 +377,4 @@ def solve_history(model: Model, params: dict[str, torch.Tensor], times, load_fac
     if bar is not None:
         bar.close()
     return HistorySolution(np.asarray(times, dtype=np.float64), np.asarray(load_factors, dtype=np.float64), u_out,
-                           status.astype(str), t_reached, increments, iterations, timings)
+                           status.astype(str), t_reached, increments, iterations, timings, u_start)
