@@ -52,9 +52,13 @@ def test_reduced_members_match_full_newton_and_their_error_estimate(solved):
     assert err.max() < TOL * scale, err
     assert err[es.snapshots].max() < 1e-12 * scale  # snapshots are the full Newton solutions
     # the check (one full Newton step at the last load) measures the distance to the full solution:
-    # Newton converges quadratically from there, so estimate and error agree to a few percent
+    # Newton converges quadratically from there, so estimate and error agree to a few percent; at
+    # the other loads a modified Newton step (the last load's factorization) estimates it within
+    # the tangent's change: the estimate is the largest over the loads
     last = (es.u[reduced, -1] - ref.u[reduced, -1]).abs().amax(dim=(1, 2)).numpy()
-    np.testing.assert_allclose(es.error_estimate[reduced], last, rtol=0.05)
+    every = (es.u[reduced] - ref.u[reduced]).abs().amax(dim=(1, 2, 3)).numpy()
+    assert np.all(es.error_estimate[reduced] >= 0.95 * last)
+    assert np.all((es.error_estimate[reduced] >= 0.5 * every) & (es.error_estimate[reduced] <= 2.0 * every))
     assert np.isnan(es.error_estimate[es.snapshots]).all()
     assert es.counts["sampled_iterations"] > 0 and es.counts["polish_iterations"] > 0
 
