@@ -474,13 +474,28 @@ def _derivative(fn, z: dict[str, torch.Tensor], name: str) -> np.ndarray:
         return np.zeros(out.primal.shape) if out.tangent is None else out.tangent.numpy().copy()
 
 
+def prehistory(t: np.ndarray, lam: np.ndarray) -> tuple[float, bool]:
+    """What the body went through before a recording's first frame (normalized times ``t``, load
+    factors ``lam``): a recording that starts part-way up a ramp (first load > 0 and rising) is taken
+    to have started from rest, unloaded, on the first segment's ramp extended back to zero load:
+    returns (that start time, True); any other (starting unloaded, at a hold, or coming down) is
+    taken relaxed under its first frame's load: (t[0], False)."""
+    if t.size > 1 and lam[0] > 0 and lam[1] > lam[0]:
+        slope = (lam[1] - lam[0]) / (t[1] - t[0])
+        return float(t[0] - lam[0] / slope), True
+    return float(t[0]), False
+
+
 class HistoryPhysics:
     """The creeping body of the ``viscoelasticity`` candidate with history variables in its element
     kernel (``fem.viscoelastic``), seen through a recording: the FE model the load-level
     approximation of :class:`ActuatorPhysics` stands in for (it misses 5-8 % of the effect on the
     actuator, ``scripts/study_viscoelastic.py``). Same interface as ``ActuatorPhysics`` for the
     parameters ``C10, g1, tau1`` (coordinates: log, linear, log; tau1 in units of the recording's
-    duration, the body fully relaxed at the first frame's pressure, as the candidate takes it).
+    duration). Before the first frame: see :func:`prehistory` (a recording that starts part-way up a
+    ramp started from rest; measured on the suite's g1 = 0.4 recording, which starts at 10 % of its
+    largest pressure 0.05 after rest: taking the body relaxed there instead left a loop at the
+    lowest unloading pressures, directional z 3.6 and 2.7).
 
     Each observation marches the FE model through the recording's frames (steps of at most
     ``dt_fraction`` tau1 and 0.1 in load factor) and its sensitivities are forward differences
@@ -519,6 +534,7 @@ class HistoryPhysics:
                 "resolution": self.resolution, "observed": None if self.deck is None else [self.deck.camera, self.deck.face],
                 "times": np.asarray(self.rec.times, dtype=float).tolist(),
                 "pressure": np.asarray(self.rec.pressure, dtype=float).tolist(), "dt": self.dt_fraction,
+                "prehistory": "ramp from rest, else relaxed at the first frame",
                 "newton": self.newton, "z": {k: float(f"{v:.15e}") for k, v in sorted(z.items())}}
         return hashlib.sha256(json.dumps(desc, sort_keys=True).encode()).hexdigest()[:20]
 
@@ -539,14 +555,20 @@ class HistoryPhysics:
         params["g1"], params["tau1"] = nat["g1"].reshape(-1), nat["tau1"].reshape(-1)
         lam = self.base.frame_loads({**zt, "g1": torch.zeros(1, dtype=torch.float64)}).numpy()  # the pressures'
         t = normalized_time(self.rec.times)
-        sol = fem.solve_history(self.model, params, t[1:], lam[1:], max_dt=self.dt_fraction * float(nat["tau1"]),
-                                options=fem.NewtonOptions(**self.newton), t0=float(t[0]), relaxed_at=float(lam[0]))
+        start, ramp = prehistory(t, lam)
+        options = fem.NewtonOptions(**self.newton)
+        max_dt = self.dt_fraction * float(nat["tau1"])
+        if ramp:  # from rest, up the first segment's ramp extended back to zero pressure
+            sol = fem.solve_history(self.model, params, t, lam, max_dt=max_dt, options=options, t0=start)
+        else:  # relaxed under the first frame's pressure
+            sol = fem.solve_history(self.model, params, t[1:], lam[1:], max_dt=max_dt, options=options,
+                                    t0=float(t[0]), relaxed_at=float(lam[0]))
         self.marches += 1
         ok = bool(sol.converged[0])
         Y = None
         if ok:
-            u = torch.cat([sol.u_start[:, None], sol.u], dim=1)[0, :, : self.n_nodes].numpy()  # (K, n, 3)
-            Y = self.base._observed(u)
+            u = sol.u if ramp else torch.cat([sol.u_start[:, None], sol.u], dim=1)
+            Y = self.base._observed(u[0, :, : self.n_nodes].numpy())  # (K, P, 2)
         if path is not None:
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_name(path.stem + ".tmp.npz")
