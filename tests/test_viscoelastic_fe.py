@@ -43,6 +43,15 @@ def uniaxial(stretch=1.5):
     return mesh, model
 
 
+def creeping_bar(C10, g1, tau, stretch):
+    """The uniaxial block with one Prony term, nearly incompressible (D1 = 1e-7): mesh, model, params."""
+    mesh, model = uniaxial(stretch)
+    with_viscoelasticity(model)
+    params = {"C10": torch.tensor([C10]), "D1": torch.tensor([1e-7]), "g1": torch.tensor([g1]),
+              "tau1": torch.tensor([tau])}
+    return mesh, model, params
+
+
 def end_force(mesh, model, u, params):
     RF = model.nodal_forces(u, {**params, HISTORY_ROW: torch.arange(u.shape[0], dtype=torch.float64)},
                             torch.ones(u.shape[0]))
@@ -73,10 +82,7 @@ def test_overstress_derivatives_against_central_differences():
 
 def test_relaxation_after_a_step_matches_the_closed_form():
     C10, g1, tau, t1, stretch = 0.5, 0.4, 1.0, 0.01, 1.5
-    mesh, model = uniaxial(stretch)
-    with_viscoelasticity(model)
-    params = {"C10": torch.tensor([C10]), "D1": torch.tensor([1e-7]), "g1": torch.tensor([g1]),
-              "tau1": torch.tensor([tau])}
+    mesh, model, params = creeping_bar(C10, g1, tau, stretch)
     elastic = 2 * C10 / (1 - g1) * (stretch - stretch**-2)  # instantaneous, incompressible
     for T in (t1, 0.5, 2.0, 4.0):  # reactions at the end of each trace (the committed state)
         times = np.array([t1, T]) if T > t1 else np.array([t1])
@@ -112,10 +118,7 @@ def _ramp_reference(C10, g1, tau, stretch, t_ramp, times, n=200_000):
 
 def test_ramp_and_hold_converges_to_the_hereditary_integral():
     C10, g1, tau, stretch, t_ramp = 0.5, 0.4, 0.5, 1.5, 1.0
-    mesh, model = uniaxial(stretch)
-    with_viscoelasticity(model)
-    params = {"C10": torch.tensor([C10]), "D1": torch.tensor([1e-7]), "g1": torch.tensor([g1]),
-              "tau1": torch.tensor([tau])}
+    mesh, model, params = creeping_bar(C10, g1, tau, stretch)
     checks = np.array([0.5, 1.0, 1.5])
     ref = _ramp_reference(C10, g1, tau, stretch, t_ramp, checks)
     errors = []
@@ -216,6 +219,10 @@ def test_bad_traces_and_fractions_are_refused_by_name():
     with pytest.raises(ParameterError, match="add up to"):
         solve_history(two, {**good, "g1": torch.tensor([0.6]), "g2": torch.tensor([0.5]), "tau2": torch.tensor([2.0])},
                       [1.0], [1.0])
+    with pytest.raises(ValueError, match="at least one"):
+        solve_history(model, good, [], [])
+    with pytest.raises(ValueError, match="finite"):
+        solve_history(model, good, [1.0], [float("nan")])
     ts, ls, ends = time_increments([1.0, 2.0], [0.5, 0.5], max_dt=0.25, max_dlam=0.1)
     assert np.allclose(ts[-1], 2.0) and (ends >= 0).sum() == 2 and np.all(np.abs(np.diff(ls)) <= 0.1 + 1e-12)
 

@@ -267,6 +267,8 @@ def time_increments(times, load_factors, max_dt: float | None = None, max_dlam: 
     between trace points split evenly so that no step is longer than ``max_dt`` nor changes the load
     factor by more than ``max_dlam``. Returns (times, load factors, index of the trace point each step
     ends at or -1)."""
+    if np.asarray(times).size == 0:
+        raise ValueError("a load trace needs at least one (time, load factor) point after its start")
     t = np.concatenate([[float(t0)], np.asarray(times, dtype=np.float64)])
     lam = np.concatenate([[float(lam0)], np.asarray(load_factors, dtype=np.float64)])
     if t.ndim != 1 or lam.shape != t.shape:
