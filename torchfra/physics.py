@@ -318,9 +318,7 @@ class ActuatorPhysics:
         if self.deck_values is None:
             d1, e_fiber = 1.0 / (BULK_RATIO * c10), E_FIBER * one
         else:  # the deck's other values as they are; its K/mu kept as C10 moves
-            v = self.deck_values
-            d1 = (v["D1"] * v["C10"] / c10) if v.get("D1", 0.0) > 0 else 1.0 / (BULK_RATIO * c10)
-            e_fiber = v.get("E_fiber", E_FIBER) * one
+            d1, e_fiber = self._deck_d1(c10), self.deck_values.get("E_fiber", E_FIBER) * one
         p = {"C10": c10, "D1": nat["D1"].reshape(-1) if "D1" in nat else d1,
              "E_fiber": nat["E_fiber"].reshape(-1) if "E_fiber" in nat else e_fiber,
              "P": self._pressure_scale(nat) * one}
@@ -457,12 +455,9 @@ class ActuatorPhysics:
 
 
 def _deck_faces(mesh, deck: DeckModel):
-    from .forward import observed_faces
+    from .forward import ForwardConfig, observed_faces
 
-    class _Seen:  # observed_faces reads camera and face
-        camera, face = deck.camera, deck.face
-
-    return observed_faces(mesh, _Seen)
+    return observed_faces(mesh, ForwardConfig(inp=deck.path, camera=deck.camera, face=deck.face or ""))
 
 
 def _derivative(fn, z: dict[str, torch.Tensor], name: str) -> np.ndarray:

@@ -131,18 +131,18 @@ class ViscousOverstress(Term):
             raise ValueError(f"a time increment must be positive, got {dt}")
         self._dt = float(dt)
 
-    def _rows(self, params, N):
+    def _rows(self, params):
         if HISTORY_ROW not in params:
             raise ValueError(f"ViscousOverstress needs the bookkeeping parameter '{HISTORY_ROW}' "
                              "(solve the model with fem.solve_history)")
         return params[HISTORY_ROW].round().long()
 
-    def _coefficients(self, params, N):
+    def _coefficients(self, params):
         """``k`` (N,) and ``H`` (N, E, G, 3, 3) of the current increment; between a commit and the next
         increment, ``k = 0`` and ``H`` = the committed overstress (so nodal forces are the reactions)."""
         if self._S0 is None:
             raise RuntimeError("ViscousOverstress has no history: solve the model with fem.solve_history")
-        rows = self._rows(params, N)
+        rows = self._rows(params)
         g, tau = self._g(params)
         if self._dt is None:
             return torch.zeros_like(g[0]), self.overstress(params)
@@ -168,7 +168,7 @@ class ViscousOverstress(Term):
     def commit(self, u, params) -> None:
         """Advance the history of the members in ``params[HISTORY_ROW]`` to their converged state ``u``
         at the end of the current increment."""
-        rows = self._rows(params, u.shape[0])
+        rows = self._rows(params)
         S1 = self.instantaneous_stress(u, params)
         _, tau = self._g(params)
         for i, ti in enumerate(tau):
@@ -184,14 +184,14 @@ class ViscousOverstress(Term):
     def overstress(self, params) -> torch.Tensor:
         """``sum_i g_i Q_i`` at the Gauss points of the members in ``params[HISTORY_ROW]`` (N, E, G, 3, 3)
         after the last commit: the viscous part of the 2nd Piola-Kirchhoff stress."""
-        rows = self._rows(params, None)
+        rows = self._rows(params)
         g, _ = self._g(params)
         return sum(gi[:, None, None, None, None] * Qi[rows] for gi, Qi in zip(g, self._Q))
 
     # -- evaluation ------------------------------------------------------------------------------
     def evaluate(self, u, params, load_factor, tangent=True, energy=False):
         N = u.shape[0]
-        k, H = self._coefficients(params, N)
+        k, H = self._coefficients(params)
         dN, w = self.solid.dN_dX, self.solid.wdet
         F = deformation_gradient(u[:, self.conn], dN)
         ok = torch.ones(N, dtype=torch.bool)
