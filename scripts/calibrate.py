@@ -29,8 +29,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-from torchfra.calibration import (SEED, CalibrationConfig, forward_config, forward_dir, run_calibration,  # noqa: E402
-                                  validate_recording)
+from torchfra.calibration import (SEED, CalibrationConfig, RestartRanks, forward_config, forward_dir,  # noqa: E402
+                                  run_calibration, serve_restart, validate_recording)
 from torchfra.cli import add_deck_flags, check_deck_flags  # noqa: E402
 from torchfra.distributed import finish, ranks  # noqa: E402
 from torchfra.forward import ForwardConfig, observed_surface, run_forward  # noqa: E402
@@ -51,19 +51,22 @@ def _free_port() -> int:
 
 @contextmanager
 def forward_ranks(config: CalibrationConfig, run_dir: Path, n: int, argv: list[str]):
-    """The forward ensemble on ``n`` processes through torch.distributed (gloo, this machine): this
-    process becomes rank 0 of the group, and ranks 1..n-1 are this script again with the same
-    arguments, which solve their share of the members (torchfra.forward) and leave. None is started
-    when the ensemble is already on disk. On the way out the group is left, the environment restored,
-    and ranks still running when the ensemble did not finish are stopped."""
+    """The forward ensemble and the restart filter on ``n`` processes through torch.distributed
+    (gloo, this machine): this process becomes rank 0 of the group, and ranks 1..n-1 are this script
+    again with the same arguments, which solve their share of the forward members (torchfra.forward)
+    and then of every restart forecast (``calibration.serve_restart``), and leave at rank 0's stop.
+    Yields the :class:`RestartRanks` to hand to ``run_calibration`` (None: no other rank; none is
+    started when the ensemble is on disk and the restart filter is off). On the way out the stop is
+    sent, the group left, the environment restored, and ranks still running when the work did not
+    finish are stopped."""
     fwd, where = forward_config(config), forward_dir(config, run_dir.parent)
     per_file = 1 if fwd.method == "reduced" else fwd.chunk
 
     def solved() -> bool:
         return all((where / "members" / f"chunk_{s:05d}.npz").exists() for s in range(0, fwd.members, per_file))
 
-    if n <= 1 or solved():
-        yield []
+    if n <= 1 or (solved() and not config.restart):
+        yield None
         return
     group = {"MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(_free_port()), "WORLD_SIZE": str(n)}
     names = (*group, "RANK", "LOCAL_RANK", "LOCAL_WORLD_SIZE")
@@ -73,10 +76,14 @@ def forward_ranks(config: CalibrationConfig, run_dir: Path, n: int, argv: list[s
     procs = [subprocess.Popen([sys.executable, str(Path(__file__).resolve()), *argv], stdout=subprocess.DEVNULL,
                               env={**env, "RANK": str(i), "LOCAL_RANK": str(i)}) for i in range(1, n)]
     os.environ.update(group, RANK="0", LOCAL_RANK="0", LOCAL_WORLD_SIZE=str(n))
+    service = RestartRanks(ranks()) if config.restart else None
     try:
-        yield procs
+        yield service
     finally:
-        finish(ranks(), wait=False)  # the other ranks left after the forward ensemble
+        if service is not None:
+            service.stop()
+        finish(ranks(), wait=False)
+        done = solved() and (service is None or service.stopped)
         for k, v in saved.items():
             if v is None:
                 os.environ.pop(k, None)
@@ -84,12 +91,12 @@ def forward_ranks(config: CalibrationConfig, run_dir: Path, n: int, argv: list[s
                 os.environ[k] = v
         for h in procs:
             stopped = False
-            if h.poll() is None and not solved():
+            if h.poll() is None and not done:
                 h.terminate()  # this process failed or was stopped: do not leave ranks behind
                 stopped = True
             if h.wait() != 0 and not stopped:
-                print(f"forward rank process {h.pid} failed (exit status {h.returncode}); the members it "
-                      "had not saved are solved by a rerun", file=sys.stderr)
+                print(f"rank process {h.pid} failed (exit status {h.returncode}); the forward members and "
+                      "restart steps it had not saved are solved by a rerun", file=sys.stderr)
 
 
 def _base_config(a) -> tuple[CalibrationConfig, dict]:
@@ -145,9 +152,8 @@ def main(argv=None) -> dict:
     p.add_argument("--coverage-seeds", type=int, default=None, help="noise re-draws for the coverage study")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (recorded)")
     p.add_argument("--workers", type=int, default=2,
-                   help="processes sharing the forward ensemble through torch.distributed (one per core; this one "
-                        "is rank 0, the others leave after it); the restart filter, which runs after them, uses as "
-                        "many threads")
+                   help="processes sharing the forward ensemble and the restart filter's FE re-solves through "
+                        "torch.distributed (one per core; this one is rank 0)")
     add_arguments(p)
     add_deck_flags(p)
     raw_argv = list(sys.argv[1:] if argv is None else argv)
@@ -157,13 +163,15 @@ def main(argv=None) -> dict:
     torch.set_default_dtype(torch.float64)
     base, prior = _base_config(a)
     r = ranks()
-    if r.parallel:  # torchrun: the ranks share the forward ensemble; rank 0 does everything else
-        a.workers = 1
+    if r.parallel:  # torchrun: the ranks share the forward ensemble and the restart filter's re-solves;
+        a.workers = 1  # rank 0 does everything else
         if r.rank != 0:
             fwd_only = {"members": a.members, "resolution": a.mesh, "pressure": a.forward_pressure, "inp": a.inp,
                         "camera": a.camera, "face": a.face}
             config = replace(base, **prior, **{k: v for k, v in fwd_only.items() if v is not None})
             run_forward(forward_config(config), forward_dir(config, a.runs_dir), progress=False)
+            if config.restart and not a.no_restart:
+                serve_restart(config, r)
             return {}
     if a.pressure is not None and a.recording is None:
         raise ValueError("--pressure names the trace of a DIC export: give the export with --recording")
@@ -193,11 +201,17 @@ def main(argv=None) -> dict:
     validate_recording(config)  # refuse a bad file before any FE work or helper process
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # run the cleanup below when killed politely
     if r.parallel:  # torchrun started the ranks
-        out = run_calibration(config, run_dir, restart_threads=max(a.threads, r.size))
-        finish(r, wait=False)  # the other ranks left after the forward ensemble
+        service = RestartRanks(r) if config.restart else None
+        try:
+            out = run_calibration(config, run_dir, restart_threads=a.threads, restart_ranks=service)
+        finally:
+            if service is not None:
+                service.stop()
+        finish(r, wait=False)
     else:
-        with forward_ranks(config, run_dir, a.workers, raw_argv):
-            out = run_calibration(config, run_dir, restart_threads=max(a.threads, a.workers))
+        with forward_ranks(config, run_dir, a.workers, raw_argv) as service:
+            out = run_calibration(config, run_dir, restart_threads=a.threads if service else max(a.threads, a.workers),
+                                  restart_ranks=service)
     summary = write_calibration_outputs(out, run_dir, time.perf_counter() - t0)
     fit = summary.get("data_fit", {"ok": True})
     if not fit["ok"]:  # flagged, never reported as a result

@@ -4,6 +4,7 @@
     python scripts/scenarios.py                               # every effect, 3 noise seeds, sigma 1 mm
     python scripts/scenarios.py --effects gravity,none --seeds 1 --correlation 0,4
     python scripts/scenarios.py --quick                       # smoke run: resolution 1, few frames
+    torchrun --standalone --nproc-per-node 2 scripts/scenarios.py   # cases shared out over 2 ranks
 
 writes <out>/: results.json (one row per case), table.md (per effect and SNR band: identification
 rate, false attributions on nulls, "unexplained" rate, RMS before/after in noise units, FE solves,
@@ -130,6 +131,55 @@ def _write_json(path: Path, obj) -> None:
     tmp.replace(path)
 
 
+def run_cases(todo: list[dict], rows: dict, results: Path, a, run) -> tuple[dict | None, int]:
+    """Run every case of ``todo`` without a row in ``rows`` (``run(case) -> row``), saving rows as
+    they come. Under torchrun the ranks share the cases out round robin (as rank 0's rows list what
+    is left, so all agree); each rank keeps its rows in ``results.rank<R>.json`` beside
+    ``results`` until rank 0 has gathered them (as JSON text, never pickled) into ``results``.
+    Returns (every row, cases reused) on rank 0, (None, 0) on the others."""
+    from torchfra.distributed import broadcast_ints, finish, gather_bytes, ranks
+
+    r = ranks()
+    parts = sorted(results.parent.glob("results.rank*.json")) if r.rank == 0 else []
+    for part in parts:  # a stopped parallel run's rows: into results.json before any rank writes again
+        rows.update({row["case"]: row for row in json.loads(part.read_text())["rows"]})
+    if parts:
+        _write_json(results, {"settings": vars(a), "rows": list(rows.values())})
+        for part in parts:
+            part.unlink()
+    left = broadcast_ints([i for i, c in enumerate(todo) if c["case"] not in rows] if r.rank == 0 else None, r)
+    reused = len(todo) - len(left)
+    if r.rank == 0:
+        print((f"{len(todo)} cases, {reused} reused from {results}" if reused else f"{len(todo)} cases")
+              + (f", shared out over {r.size} ranks" if r.parallel else ""))
+    mine = r.share(left)
+    own: dict = {}
+    bar = tqdm([todo[i] for i in mine], desc=f"scenarios (rank {r.rank} of {r.size}: its share)" if r.parallel
+               else "scenarios", unit="case", disable=r.rank != 0)
+    partial = results.with_name(f"results.rank{r.rank}.json")
+    for case in bar:
+        bar.set_postfix_str(case["case"])
+        own[case["case"]] = run(case)
+        if r.parallel:
+            _write_json(partial, {"settings": vars(a), "rows": list(own.values())})
+        else:
+            rows[case["case"]] = own[case["case"]]
+            _write_json(results, {"settings": vars(a), "rows": list(rows.values())})
+    if not r.parallel:
+        return rows, reused
+    gathered = gather_bytes(json.dumps(list(own.values())).encode(), r)
+    if r.rank != 0:
+        finish(r, wait=False)
+        return None, 0
+    for data in gathered:
+        rows.update({row["case"]: row for row in json.loads(data.decode())})
+    _write_json(results, {"settings": vars(a), "rows": list(rows.values())})
+    for part in results.parent.glob("results.rank*.json"):  # gathered: results.json holds them now
+        part.unlink()
+    finish(r, wait=False)
+    return rows, reused
+
+
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--effects", default="all", help=f"'all' or a comma list of: {', '.join(scenarios.EFFECTS)}")
@@ -167,16 +217,10 @@ def main(argv=None) -> dict:
     if a.estimate_noise:
         for c in todo:
             c["case"] += "_estnoise"
-    reused = sum(c["case"] in rows for c in todo)
-    print(f"{len(todo)} cases, {reused} reused from {results}" if reused else f"{len(todo)} cases")
     t0 = time.perf_counter()
-    bar = tqdm(todo, desc="scenarios", unit="case")
-    for case in bar:
-        if case["case"] in rows:
-            continue
-        bar.set_postfix_str(case["case"])
-        rows[case["case"]] = run_case(case, a, out, diagnose)
-        _write_json(results, {"settings": vars(a), "rows": list(rows.values())})
+    rows, reused = run_cases(todo, rows, results, a, lambda case: run_case(case, a, out, diagnose))
+    if rows is None:  # a rank other than 0: its rows went to rank 0
+        return {}
     selected = [rows[c["case"]] for c in todo]
     (out / "table.md").write_text(table(selected))
     summary = {"cases": len(selected), "reused": reused, "correct": sum(r["correct"] for r in selected),

@@ -111,9 +111,10 @@ def test_calibration_of_a_deck_from_its_recording(deck, tmp_path):
 
 def test_calibrate_workers_share_the_forward_ensemble_through_torch_distributed(deck, tmp_path):
     """``calibrate.py --workers 2``: this process becomes rank 0 of a gloo group and a second process
-    (the script again, rank 1) solves its share of the members; every member equals the one-process
-    run's (round-off), every filter gives the same posterior, and the process leaves the group and
-    its environment as it found them."""
+    (the script again, rank 1) solves its share of the forward members and of every restart
+    forecast; every member equals the one-process run's (round-off), every filter gives the same
+    posterior (the restart filter's to 1e-9 after 4 steps of FE re-solves split over the ranks),
+    and the process leaves the group and its environment as it found them."""
     import os
 
     import torch.distributed as dist
@@ -136,3 +137,39 @@ def test_calibrate_workers_share_the_forward_ensemble_through_torch_distributed(
     assert np.abs(Y1 - Y2).max() < 1e-10
     for name in ("hierarchical", "hierarchical_nonlinear", "exact", "restart"):
         assert abs(one["filters"][name]["C10"]["mean"] - two["filters"][name]["C10"]["mean"]) < 1e-9
+        assert abs(one["filters"][name]["C10"]["std"] - two["filters"][name]["C10"]["std"]) < 1e-9
+    assert one["restart_ranks"] == 1 and two["restart_ranks"] == 2
+    assert two["filters"]["restart"]["fe_solves"] == one["filters"]["restart"]["fe_solves"] > 0
+    # a rerun finds the forward ensemble and the restart filter done: its ranks start, find nothing to
+    # solve and leave at the stop
+    again = calibrate.main([*args, "--workers", "2", "--runs-dir", str(tmp_path / "two")])
+    assert again["filters"]["restart"]["C10"] == two["filters"]["restart"]["C10"]
+    assert "WORLD_SIZE" not in os.environ and not dist.is_initialized()
+
+
+def test_calibrate_under_torchrun_shares_the_restart_filter(deck, tmp_path):
+    """``torchrun --standalone --nproc-per-node 2 scripts/calibrate.py``: rank 1 solves its share of
+    the forward members and of every restart forecast, rank 0 the rest and everything else; every
+    filter equals the one-process run's (reference) to 1e-9, and nothing is printed as a warning."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    rec = tmp_path / "rec.csv"
+    make_recording.main(["--inp", str(deck), "--noise", "0.01", "--seed", "3", "--frames", "12", "--out", str(rec)])
+    args = ["--inp", str(deck), "--param", PRIOR, "--recording", str(rec), "--noise", "0.01", "--members", "16",
+            "--coverage-seeds", "0", "--name", "cal"]
+    one = calibrate.main([*args, "--workers", "1", "--runs-dir", str(tmp_path / "one")])
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(root))
+    done = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+                           str(root / "scripts" / "calibrate.py"), *args, "--runs-dir", str(tmp_path / "two")],
+                          capture_output=True, text=True, env=env, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "warn" not in done.stderr.lower(), done.stderr[-3000:]
+    two = json.loads((tmp_path / "two" / "cal" / "summary.json").read_text())
+    assert two["restart_ranks"] == 2 and two["filters"]["restart"]["fe_solves"] == one["filters"]["restart"]["fe_solves"]
+    for name in ("hierarchical", "hierarchical_nonlinear", "exact", "restart"):
+        for stat in ("mean", "std"):
+            assert abs(one["filters"][name]["C10"][stat] - two["filters"][name]["C10"][stat]) < 1e-9

@@ -45,3 +45,43 @@ def test_two_ranks_equal_one_process_and_every_rank_holds_the_ensemble(tmp_path)
     again = torchrun(tmp_path / "two")
     assert again.returncode == 0, again.stderr[-3000:]
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps  # resumed: nothing solved or rewritten
+
+
+def scenario_suite(out: Path, torchrun: bool) -> subprocess.CompletedProcess:
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
+    launch = ["-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2"] if torchrun else []
+    return subprocess.run([sys.executable, *launch, str(ROOT / "tests" / "torchrun_scenarios.py"),
+                           "--effects", "none,gravity", "--seeds", "2", "--out", str(out)],
+                          capture_output=True, text=True, env=env, timeout=600)
+
+
+def test_scenario_suite_shares_its_cases_over_ranks_and_resumes(tmp_path):
+    """scripts/scenarios.py under torchrun (each case's diagnosis replaced by a deterministic row,
+    tests/torchrun_scenarios.py): the 2 ranks run disjoint halves of the cases, rank 0 gathers every
+    row into results.json and the same table as one process; a stopped run's per-rank rows are
+    reused, not run again."""
+    import json
+
+    one = scenario_suite(tmp_path / "one", torchrun=False)
+    assert one.returncode == 0, one.stderr[-3000:]
+    done = scenario_suite(tmp_path / "two", torchrun=True)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "warn" not in done.stderr.lower(), done.stderr[-3000:]
+    rows1 = {r["case"]: r for r in json.loads((tmp_path / "one" / "results.json").read_text())["rows"]}
+    rows2 = {r["case"]: r for r in json.loads((tmp_path / "two" / "results.json").read_text())["rows"]}
+    assert len(rows1) == (4 + 3) * 2 and rows1.keys() == rows2.keys()
+    ran_by = [r.pop("rank") for r in rows2.values()]
+    assert sorted(ran_by) == [0] * 7 + [1] * 7  # round robin: each rank half of the cases
+    assert all(rows1[c] | {"rank": 0} == rows2[c] | {"rank": 0} for c in rows1)
+    assert (tmp_path / "one" / "table.md").read_text() == (tmp_path / "two" / "table.md").read_text()
+    assert not list((tmp_path / "two").glob("results.rank*.json"))  # gathered
+    # a run stopped with 2 rows saved by rank 1 only: they are reused, the rest is run
+    results = json.loads((tmp_path / "two" / "results.json").read_text())
+    kept = results["rows"][:2]
+    (tmp_path / "two" / "results.json").unlink()
+    (tmp_path / "two" / "results.rank1.json").write_text(json.dumps({"settings": {}, "rows": kept}))
+    again = scenario_suite(tmp_path / "two", torchrun=True)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "14 cases, 2 reused" in again.stdout
+    rows3 = json.loads((tmp_path / "two" / "results.json").read_text())["rows"]
+    assert len(rows3) == 14 and {r["case"] for r in rows3} == rows1.keys()

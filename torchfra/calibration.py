@@ -256,12 +256,17 @@ class RestartForecaster:
     ``reduced``: a ``fem.reduced.HyperReducedModel`` of the same model (the forward ensemble's):
     members are then re-solved on its basis (hyper-reduced Newton polished on the full residual,
     ``fem.reduced.solve_reduced``), warm-started from their reduced states; a member whose reduced
-    solve fails is solved in full from the unloaded state and continues from its projection."""
+    solve fails is solved in full from the unloaded state and continues from its projection.
 
-    def __init__(self, solver: ActuatorSolver, lam: np.ndarray, N: int, frames=None, reduced=None):
+    ``ranks``: a :class:`RestartRanks` of a torch.distributed group (torchrun, ``calibrate.py
+    --workers``): every forecast's members are then shared out round robin over the ranks, each
+    re-solves its share (:func:`serve_restart` on ranks 1..), and rank 0 gathers them."""
+
+    def __init__(self, solver: ActuatorSolver, lam: np.ndarray, N: int, frames=None, reduced=None, ranks=None):
         self.solver, self.lam = solver, lam
         self.frames = np.arange(len(lam)) if frames is None else np.asarray(frames)
         self.reduced = reduced
+        self.ranks = ranks
         pack = fem.newton._Packing(solver.model)
         size = pack.size if reduced is None else reduced.basis.size
         self.x = torch.zeros(N, size, dtype=torch.float64)
@@ -283,49 +288,156 @@ class RestartForecaster:
         return True
 
     def __call__(self, Q: torch.Tensor, k: int) -> torch.Tensor:
-        s = self.solver
-        target = np.full(len(Q), self.lam[k])
+        s, N = self.solver, len(Q)
+        target = float(self.lam[k])
+        if self.reduced is not None and np.ptp(self.lam_now) > 0:
+            raise RuntimeError("restart filter: members are at different loads; restart the filter")
         params = s.params_q(Q)
-        if self.reduced is not None:
-            return self._reduced(params, k, target)
-        sol = fem.solve(s.model, params, [1.0],
-                        s.options(initial_increment=1.0), start=fem.WarmStart(self.x, self.lam_now, target))
-        self.fe_solves += len(Q)
-        self.newton_iterations += int(sol.iterations.sum())
-        failed = np.flatnonzero(sol.status != "converged")
+        lam_now = torch.as_tensor(self.lam_now, dtype=torch.float64)
+        if self.ranks is not None and self.ranks.r.parallel:
+            step = self.ranks.solve(params, self.x, lam_now, target)
+        else:
+            step = restart_solve(s, self.reduced, params, self.x, lam_now, target)
+        u, x, iterations, fallbacks, failed = step
+        failed = np.flatnonzero(failed)
         if failed.size:
             raise RuntimeError(f"restart filter: members {failed.tolist()} did not converge at frame {self.frames[k]} "
                                f"({ {n: v[failed].tolist() for n, v in s.pset.natural(Q).items()} }); the run can be "
                                "resumed after a fix")
-        self.x, self.lam_now = sol.x_last, target
-        Y = s.operator(sol.u[:, -1, : s.mesh.n_nodes])
-        return Y.reshape(len(Q), -1)
-
-    def _reduced(self, params, k, target) -> torch.Tensor:
-        from .fem.reduced import solve_reduced
-
-        s, N = self.solver, len(target)
-        if np.ptp(self.lam_now) > 0:
-            raise RuntimeError("restart filter: members are at different loads; restart the filter")
-        rs = solve_reduced(self.reduced, params, [float(target[0])], start=(self.x, float(self.lam_now[0])),
-                           check=False)
-        u = rs.u[:, -1]
-        q = rs.a[:, -1] @ self.reduced.basis.V
-        self.newton_iterations += int(rs.iterations.sum() + rs.polish.sum())
-        failed = np.flatnonzero(rs.status != "converged")
-        if failed.size:  # Newton on the full model from the unloaded state, then on the basis again
-            sol = fem.solve(s.model, {n: v[failed] for n, v in params.items()}, [float(target[0])], s.options())
-            bad = failed[sol.status != "converged"]
-            if bad.size:
-                raise RuntimeError(f"restart filter: members {bad.tolist()} did not converge at frame "
-                                   f"{self.frames[k]}; the run can be resumed after a fix")
-            u[failed] = sol.u[:, -1]
-            q[failed] = sol.a[:, -1] @ self.reduced.basis.V
-            self.newton_iterations += int(sol.iterations.sum())
-            self.full_fallbacks += failed.size
         self.fe_solves += N
-        self.x, self.lam_now = q, target
+        self.newton_iterations += int(iterations)
+        self.full_fallbacks += int(fallbacks)
+        self.x, self.lam_now = x, np.full(N, target)
         return s.operator(u[:, : s.mesh.n_nodes]).reshape(N, -1)
+
+
+def restart_solve(solver: ActuatorSolver, reduced, params: dict, x: torch.Tensor, lam_now: torch.Tensor,
+                  target: float):
+    """One restart step of the members ``params`` (name -> (n,)) from their states ``x`` at load
+    factors ``lam_now`` to ``target``: -> displacements (n, nodes, 3), new states, Newton
+    iterations, full-Newton fallbacks, failed (n,) bool. Every member is solved on its own (a
+    batch, or its share of one on a rank, gives each member the same answer)."""
+    n = x.shape[0]
+    if n == 0:
+        return (torch.zeros(0, solver.model.n_nodes, 3, dtype=torch.float64), x.clone(), 0, 0,
+                np.zeros(0, dtype=bool))
+    if reduced is None:
+        sol = fem.solve(solver.model, params, [1.0], solver.options(initial_increment=1.0),
+                        start=fem.WarmStart(x, lam_now.numpy(), np.full(n, target)))
+        return sol.u[:, -1], sol.x_last, int(sol.iterations.sum()), 0, sol.status != "converged"
+    from .fem.reduced import solve_reduced
+
+    rs = solve_reduced(reduced, params, [target], start=(x, float(lam_now[0])), check=False)
+    u = rs.u[:, -1].clone()
+    q = rs.a[:, -1] @ reduced.basis.V
+    iterations = int(rs.iterations.sum() + rs.polish.sum())
+    failed = np.flatnonzero(rs.status != "converged")
+    bad = np.zeros(n, dtype=bool)
+    if failed.size:  # Newton on the full model from the unloaded state, then on the basis again
+        sol = fem.solve(solver.model, {k: v[failed] for k, v in params.items()}, [target], solver.options())
+        bad[failed[sol.status != "converged"]] = True
+        u[failed] = sol.u[:, -1]
+        q[failed] = sol.a[:, -1] @ reduced.basis.V
+        iterations += int(sol.iterations.sum())
+    return u, q, iterations, int(failed.size), bad
+
+
+class RestartRanks:
+    """Rank 0's side of the restart filter on a torch.distributed group: :meth:`start` (the reduced
+    model and the parameter names to every rank), :meth:`solve` per forecast, :meth:`stop`. Ranks
+    1.. run :func:`serve_restart` after the forward ensemble and leave at the stop. Only tensors
+    travel (float64 and the bytes of the array-only ``reduced_model.npz``); nothing is pickled."""
+
+    STOP, START, SOLVE = 0.0, 1.0, 2.0
+
+    def __init__(self, r):
+        self.r = r
+        self.ready = False  # set once the forward ensemble is done: the other ranks then wait for a header
+        self.busy = False  # inside a solve: a stop now would not match what the other ranks wait for
+        self.stopped = False
+        self.names: list[str] = []
+
+    def _header(self, cmd: float, value: float = 0.0) -> None:
+        from .distributed import broadcast_tensor
+
+        broadcast_tensor(torch.tensor([cmd, value], dtype=torch.float64), self.r)
+
+    def start(self, solver: ActuatorSolver, reduced, reduced_file: Path | None, names: list[str]) -> None:
+        from .distributed import broadcast_tensor
+
+        self.solver, self.reduced = solver, reduced
+        self._header(self.START)
+        data = reduced_file.read_bytes() if reduced_file is not None and reduced_file.exists() else b""
+        broadcast_tensor(torch.frombuffer(bytearray(data), dtype=torch.uint8) if data else torch.zeros(0, dtype=torch.uint8),
+                         self.r, dtype=torch.uint8)
+        meta = json.dumps({"names": list(names)}).encode()
+        broadcast_tensor(torch.frombuffer(bytearray(meta), dtype=torch.uint8), self.r, dtype=torch.uint8)
+        self.names = list(names)
+
+    def solve(self, params: dict, x: torch.Tensor, lam_now: torch.Tensor, target: float):
+        from .distributed import broadcast_tensor, recv_tensors
+
+        self.busy = True
+        self._header(self.SOLVE, target)
+        P = torch.stack([params[n] for n in self.names], dim=1)
+        for t in (P, x, lam_now):
+            broadcast_tensor(t, self.r)
+        parts = {0: _restart_share(self.solver, self.reduced, self.names, P, x, lam_now, target, self.r)}
+        for src in range(1, self.r.size):
+            parts[src] = recv_tensors(5, src)
+        n = x.shape[0]
+        u = torch.empty(n, *parts[0][0].shape[1:], dtype=torch.float64)
+        x_new = torch.empty_like(x)
+        failed = np.zeros(n, dtype=bool)
+        iterations = fallbacks = 0
+        for src, (u_s, x_s, it, fb, bad) in parts.items():
+            rows = torch.arange(src, n, self.r.size)
+            u[rows], x_new[rows], failed[rows.numpy()] = u_s, x_s, bad.numpy() > 0
+            iterations += int(it)
+            fallbacks += int(fb)
+        self.busy = False
+        return u, x_new, iterations, fallbacks, failed
+
+    def stop(self) -> None:
+        """The stop to the other ranks, once, when they wait for it (the forward ensemble done, no
+        exchange cut short: otherwise the group is ended by the launcher or the caller)."""
+        if self.r.parallel and self.ready and not self.busy and not self.stopped:
+            self._header(self.STOP)
+            self.stopped = True
+
+
+def _restart_share(solver, reduced, names, P, x, lam_now, target, r) -> list[torch.Tensor]:
+    rows = torch.arange(r.rank, x.shape[0], r.size)
+    params = {n: P[rows, j] for j, n in enumerate(names)}
+    u, x_new, it, fb, bad = restart_solve(solver, reduced, params, x[rows], lam_now[rows], target)
+    return [u, x_new, torch.tensor(float(it)), torch.tensor(float(fb)), torch.as_tensor(bad, dtype=torch.float64)]
+
+
+def serve_restart(config, r) -> int:
+    """Ranks 1..: after the forward ensemble, re-solve this rank's share of every restart forecast
+    rank 0 sends, until its stop. Returns the number of forecasts served."""
+    import io
+
+    from .distributed import broadcast_tensor, send_tensors
+    from .fem.reduced import HyperReducedModel
+
+    solver, reduced, names, served = None, None, [], 0
+    while True:
+        cmd, value = broadcast_tensor(None, r).tolist()
+        if cmd == RestartRanks.STOP:
+            return served
+        if cmd == RestartRanks.START:
+            data = broadcast_tensor(None, r, dtype=torch.uint8).numpy().tobytes()
+            names = json.loads(broadcast_tensor(None, r, dtype=torch.uint8).numpy().tobytes())["names"]
+            solver = ActuatorSolver(config.resolution, None, forward_config(config))
+            reduced = None
+            if data:
+                with np.load(io.BytesIO(data), allow_pickle=False) as f:
+                    reduced = HyperReducedModel.from_arrays(solver.model, {k: f[k] for k in f.files})
+            continue
+        P, x, lam_now = (broadcast_tensor(None, r) for _ in range(3))
+        send_tensors(_restart_share(solver, reduced, names, P, x, lam_now, value, r), 0)
+        served += 1
 
 
 def recording_digest(rec: Recording) -> str:
@@ -550,14 +662,19 @@ def _forward_reduction(solver: ActuatorSolver, fwd_dir):
         return HyperReducedModel.from_arrays(solver.model, {k: f[k] for k in f.files})
 
 
-def _restart(config, run_dir, rec, lam, Q0, Z, r, tracked, progress, fwd_dir=None):
-    """Restart filter on every ``restart_every``-th frame, checkpointed after each step."""
+def _restart(config, run_dir, rec, lam, Q0, Z, r, tracked, progress, fwd_dir=None, ranks=None):
+    """Restart filter on every ``restart_every``-th frame, checkpointed after each step; its FE
+    re-solves shared out over the ranks of ``ranks`` (a :class:`RestartRanks`) when given."""
     from .assimilation import FilterResult, sequential_filter
 
     idx = np.arange(config.restart_every - 1, rec.n_frames, config.restart_every)
     ckpt = run_dir / "restart_checkpoint.pt"
     solver = ActuatorSolver(config.resolution, rec, forward_config(config))
-    fc = RestartForecaster(solver, lam[idx], Q0.shape[0], rec.frames[idx], reduced=_forward_reduction(solver, fwd_dir))
+    fc = RestartForecaster(solver, lam[idx], Q0.shape[0], rec.frames[idx], reduced=_forward_reduction(solver, fwd_dir),
+                           ranks=ranks)
+    if ranks is not None and ranks.r.parallel:
+        ranks.start(solver, fc.reduced, None if fwd_dir is None else Path(fwd_dir) / "reduced_model.npz",
+                    list(solver.params_q(Q0[:1]).keys()))
     gen = torch.Generator().manual_seed(config.filter_seed + 100)
     result = None
     if ckpt.exists():
@@ -585,7 +702,7 @@ def _restart(config, run_dir, rec, lam, Q0, Z, r, tracked, progress, fwd_dir=Non
 
 
 def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, runs_dir=None,
-                    restart_threads: int | None = None) -> dict:
+                    restart_threads: int | None = None, restart_ranks: RestartRanks | None = None) -> dict:
     """Run every filter on the recording; return everything the report needs (see scripts/calibrate.py).
     The forward ensemble is cached under ``runs_dir`` (default: the run folder's parent).
     ``restart_threads``: torch threads of the restart filter's FE re-solves (default: as set). It runs
@@ -606,6 +723,8 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, r
     load_factors(rec, fwd_cfg.pressure)
     faces = ActuatorSolver(config.resolution, rec, fwd_cfg).faces
     fwd = run_forward(fwd_cfg, forward_dir(config, run_dir.parent if runs_dir is None else runs_dir), progress=progress)
+    if restart_ranks is not None:  # the other ranks are past the forward ensemble: they wait for the restart filter
+        restart_ranks.ready = True
     ok = fwd["status"] == "converged"
     if not ok.all():  # flagged, never silently replaced: the filters run on the converged members
         print(f"forward members {np.flatnonzero(~ok).tolist()} did not converge; they are left out of the filters")
@@ -657,9 +776,14 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, r
         torch.set_num_threads(out["restart_threads"])
         try:
             res, idx = _restart(config, run_dir, rec, lam, Q0_all, Z, r, tracked, progress,
-                                fwd_dir=forward_dir(config, run_dir.parent if runs_dir is None else runs_dir))
+                                fwd_dir=forward_dir(config, run_dir.parent if runs_dir is None else runs_dir),
+                                ranks=restart_ranks)
         finally:
             torch.set_num_threads(threads)
+            if restart_ranks is not None:
+                restart_ranks.stop()
+        if restart_ranks is not None and restart_ranks.r.parallel:
+            out["restart_ranks"] = restart_ranks.r.size
         out["filters"]["restart"] = {"result": res, "frames": idx}
         out["exact_restart_frames"] = ref.posterior(rec.Z.reshape(K, -1), config.noise ** 2, frames=idx)
         out["restart_spline_check"] = restart_spline_check(config, res, idx, ref, Q0_all, Z, r, tracked)

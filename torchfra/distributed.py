@@ -105,3 +105,74 @@ def finish(r: Ranks, wait: bool = True) -> None:
         if wait:
             dist.barrier()
         dist.destroy_process_group()
+
+
+def _header(t: torch.Tensor | None) -> torch.Tensor:
+    head = torch.zeros(9, dtype=torch.int64)
+    if t is not None:
+        head[0] = t.ndim
+        head[1 : 1 + t.ndim] = torch.tensor(t.shape, dtype=torch.int64)
+    return head
+
+
+def broadcast_tensor(t: torch.Tensor | None, r: Ranks, src: int = 0, dtype=torch.float64) -> torch.Tensor:
+    """Rank ``src``'s tensor (any shape, at most 8 dimensions, of ``dtype``) on every rank."""
+    import torch.distributed as dist
+
+    if not r.parallel:
+        return t
+    head = _header(t.to(dtype) if r.rank == src else None)
+    dist.broadcast(head, src)
+    shape = head[1 : 1 + int(head[0])].tolist()
+    data = t.to(dtype).contiguous() if r.rank == src else torch.empty(shape, dtype=dtype)
+    dist.broadcast(data, src)
+    return data
+
+
+def send_tensors(tensors: list[torch.Tensor], dst: int) -> None:
+    """Point to point: ``tensors`` (float64) to rank ``dst``, each with its shape."""
+    import torch.distributed as dist
+
+    for t in tensors:
+        t = t.to(torch.float64).contiguous()
+        dist.send(_header(t), dst)
+        dist.send(t, dst)
+
+
+def recv_tensors(n: int, src: int) -> list[torch.Tensor]:
+    """The ``n`` tensors :func:`send_tensors` sent from rank ``src``."""
+    import torch.distributed as dist
+
+    out = []
+    for _ in range(n):
+        head = torch.empty(9, dtype=torch.int64)
+        dist.recv(head, src)
+        t = torch.empty(head[1 : 1 + int(head[0])].tolist(), dtype=torch.float64)
+        dist.recv(t, src)
+        out.append(t)
+    return out
+
+
+def gather_bytes(data: bytes, r: Ranks, dst: int = 0) -> list[bytes]:
+    """Every rank's ``data`` on rank ``dst`` (in rank order; ``[]`` on the other ranks)."""
+    import torch.distributed as dist
+
+    if not r.parallel:
+        return [data]
+    if r.rank != dst:
+        dist.send(torch.tensor([len(data)], dtype=torch.int64), dst)
+        if data:
+            dist.send(torch.frombuffer(bytearray(data), dtype=torch.uint8), dst)
+        return []
+    out = []
+    for src in range(r.size):
+        if src == dst:
+            out.append(data)
+            continue
+        n = torch.empty(1, dtype=torch.int64)
+        dist.recv(n, src)
+        buf = torch.empty(int(n), dtype=torch.uint8)
+        if int(n):
+            dist.recv(buf, src)
+        out.append(buf.numpy().tobytes())
+    return out

@@ -79,6 +79,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -388,7 +389,7 @@ def clean_observations(effect: str, value: float, c10: float, resolution: int, s
               "mesh": np.array([mesh.n_elements, mesh.n_nodes, info["dofs"]])}
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp.npz")
+        tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")  # ranks of a torchrun suite may write at once
         np.savez(tmp, key=np.array(text), **arrays)
         tmp.replace(path)
     return arrays, 1

@@ -378,8 +378,10 @@ def solve_reduced(hyper: HyperReducedModel, params: dict, load_factors, xtol: fl
                             if with_tangent:
                                 alive[m] = active[m] = False
                                 status[m] = "failed"
-                            else:  # a stale tangent made things worse: undo, refresh the tangent
-                                q[m] = q[m] - dq[j]
+                            else:  # a stale tangent made things worse: undo (a rejected step was
+                                # never applied), refresh the tangent
+                                if not bool(bad[j]):
+                                    q[m] = q[m] - dq[j]
                                 need_tangent[m] = True
                             continue
                         if step[j] < (xtol if phase == "sampled" else polish_tol):

@@ -141,6 +141,7 @@ def write_calibration_outputs(out: dict, run_dir, wall_s: float) -> dict:
         summary["data_fit"] = out["data_fit"]
     if "restart_threads" in out:
         summary["restart_threads"] = out["restart_threads"]
+        summary["restart_ranks"] = out.get("restart_ranks", 1)  # processes sharing its FE re-solves
     summary["direct_fe_check"] = out["direct_fe_check"]
     summary["polynomial_slave"] = {"degree": out["slave_degree"], "leave_one_out_rms_mm": out["slave_loo_rms_mm"]}
     if "restart_spline_check" in out:
