@@ -268,7 +268,7 @@ def build(divisions, cfg: Config):
     """Model of the bending block (DEFINITIONS['newton.problem']) and its size/build record."""
     t_mesh, mesh = clock(lambda: box_mesh(BOX_MM, divisions))
     model = fem.Model(mesh, dtype=DTYPE, memory_budget_mb=cfg.memory_budget_mb)
-    solid = model.add(fem.Hex20Solid(mesh, fem.NeoHookean(), dtype=DTYPE))
+    solid = model.add(fem.Hex20Solid(mesh, fem.NeoHookean(), integration="reduced", dtype=DTYPE))
     model.clamp("zmin")
     model.rigid("zmax")
     model.add(fem.FollowerPressure(mesh, "ymin", pressure="P", dtype=DTYPE))
@@ -306,7 +306,7 @@ def bench_kernels(model, solid, info, cfg: Config, derived: bool) -> list[dict]:
     E, chunk = info["elements"], info["chunk_size"]
     terms = [("neohookean_closed_form", solid)]
     if derived:
-        terms.append(("neohookean_torch_func", fem.Hex20Solid(model.mesh, fem.NeoHookean(fast=False), dtype=DTYPE)))
+        terms.append(("neohookean_torch_func", fem.Hex20Solid(model.mesh, fem.NeoHookean(fast=False), integration="reduced", dtype=DTYPE)))
     rows = []
     for name, term in terms:
         for n in cfg.members:

@@ -92,16 +92,9 @@ def chordify(model) -> None:
     ends (through the ends' host weights), so its displacement is linear along the chord and its
     Green strain is that of a two-node truss."""
     k, truss = next((k, t) for k, t in enumerate(model.terms) if isinstance(t, fem.Truss))
-    ties = {node: (hosts, weights) for node, hosts, weights in model.embedded_nodes}
     conn = truss.conn.numpy()
     pairs = np.concatenate([conn[:, [0, 2]], conn[:, [2, 1]]])
-    mids = model.add_nodes(0.5 * (model.X[pairs[:, 0]] + model.X[pairs[:, 1]]))
-    for node, (a, b) in zip(mids, pairs):
-        hosts = np.concatenate([ties[a][0], ties[b][0]])
-        unique, inverse = np.unique(hosts, return_inverse=True)
-        model.embed(int(node), unique, np.bincount(inverse, weights=0.5 * np.concatenate([ties[a][1], ties[b][1]])))
-    model.terms[k] = fem.Truss(model.X, np.stack([pairs[:, 0], pairs[:, 1], mids], 1), area=truss.area,
-                               modulus=truss.modulus)
+    model.terms[k] = fem.two_node_truss(model, pairs, area=truss.area, modulus=truss.modulus)
 
 
 def build(geom: ActuatorGeometry, formulation: str, integration: str, pressure: str, fibers: str):

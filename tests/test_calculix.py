@@ -87,11 +87,14 @@ def test_deck_cards_and_errors(tmp_path):
     model.add(fem.FollowerPressure(model.mesh, "ymin", pressure="P"))
     model.prescribe("zmax", 2, 1.0)
     deck = write_inp(tmp_path / "deck.inp", model, {"C10": C10, "D1": D1, "P": 0.01}).read_text()
-    for card in ("*ELEMENT, TYPE=C3D20R", "*HYPERELASTIC, NEO HOOKE", "*SURFACE, NAME=S_YMIN, TYPE=ELEMENT",
+    # the body integrates with 3x3x3 points (Hex20Solid's default): C3D20, not C3D20R
+    for card in ("*ELEMENT, TYPE=C3D20,", "*HYPERELASTIC, NEO HOOKE", "*SURFACE, NAME=S_YMIN, TYPE=ELEMENT",
                  "*DLOAD, AMPLITUDE=RAMP_HOLD", "*STATIC, DIRECT", "*CONTROLS, PARAMETERS=FIELD", "*NODE PRINT"):
         assert card in deck
     # the ymin faces of the 2 x 6 elements on y = 0 are Abaqus face S3
     assert deck.count(", P3, 0.01") == 12
+    with pytest.raises(ValueError, match="element_type=C3D20R is the other rule: give C3D20,"):
+        write_inp(tmp_path / "bad.inp", model, {"C10": C10, "D1": D1, "P": 0.01}, element_type="C3D20R")
     with pytest.raises(KeyError, match="'P'"):
         write_inp(tmp_path / "bad.inp", model, {"C10": C10, "D1": D1})
     with pytest.raises(ValueError, match="single number"):

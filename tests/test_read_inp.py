@@ -95,7 +95,7 @@ FIBER_PARAMS = {"C10": 0.1, "C01": 0.03, "D1": 0.05, "E_fiber": 300.0, "P": 0.02
 def test_fibers_cavity_gravity_rigid_round_trip(tmp_path):
     """T3D3 fibers tied by *EQUATION, *DLOAD pressure closing a cavity, GRAV, *RIGID BODY."""
     original = fiber_model()
-    model, deck = assert_round_trip(original, FIBER_PARAMS, tmp_path, "fibers", element_type="C3D20RH")
+    model, deck = assert_round_trip(original, FIBER_PARAMS, tmp_path, "fibers", element_type="C3D20H")
     text = deck.read_text()
     assert "*RIGID BODY" in text and "*EQUATION" in text and "GRAV" in text and "TYPE=T3D3" in text
     assert len(model.embedded_nodes) == 5
@@ -105,7 +105,7 @@ def test_fibers_cavity_gravity_rigid_round_trip(tmp_path):
 def test_embedded_element_card_ties_like_the_equations(tmp_path):
     """The same deck with *EMBEDDED ELEMENT instead of the *EQUATION ties reads to the same model."""
     original = fiber_model()
-    deck = write_inp(tmp_path / "fibers.inp", original, FIBER_PARAMS, element_type="C3D20RH")
+    deck = write_inp(tmp_path / "fibers.inp", original, FIBER_PARAMS, element_type="C3D20H")
     text = re.sub(r"\*EQUATION\n\d+\n[^*]*", "", deck.read_text())
     assert "*EQUATION" not in text
     text = text.replace("*BOUNDARY\n", "*EMBEDDED ELEMENT, HOST ELSET=SOLID0\nTRUSS1\n*BOUNDARY\n", 1)
@@ -121,7 +121,7 @@ def test_t3d2_pair_equals_straight_t3d3_at_an_affine_state(tmp_path):
     a Line3 truss with a tied middle node (a constant-strain truss). On a straight fiber under an
     affine displacement both store the same energy, so the residuals agree."""
     original = fiber_model(fem.FollowerPressure)
-    deck = write_inp(tmp_path / "t3d2.inp", original, FIBER_PARAMS, element_type="C3D20RH", truss_element="T3D2")
+    deck = write_inp(tmp_path / "t3d2.inp", original, FIBER_PARAMS, element_type="C3D20H", truss_element="T3D2")
     model, params, ids = read_inp(deck, with_ids=True)
     assert params == {k: FIBER_PARAMS[k] for k in original.param_names()}
     assert model.n_nodes == original.n_nodes + 4 and (ids.nodes[-4:] == -1).all()

@@ -19,12 +19,12 @@ from .sensor import SensorCavityPressure
 from .solid import Hex20Solid
 from .springs import ElasticSupport, support_face
 from .terms import Term, TermOutput
-from .truss import Truss
+from .truss import Truss, two_node_truss
 from .viscoelastic import HistorySolution, ViscousOverstress, solve_history, with_viscoelasticity
 
 __all__ = [
     "CavityPressure", "ElasticSupport", "Evaluation", "FollowerPressure", "Gravity", "Hex20Solid", "Material",
     "Mesh", "MeshError", "Model", "MooneyRivlin", "NeoHookean", "NewtonOptions", "ParameterError",
-    "SensorCavityPressure", "Solution", "Term", "TermOutput", "Truss", "rotation_matrix", "solve",
+    "SensorCavityPressure", "Solution", "Term", "TermOutput", "Truss", "rotation_matrix", "solve", "two_node_truss",
     "support_face", "WarmStart", "HistorySolution", "ViscousOverstress", "solve_history", "with_viscoelasticity",
 ]

@@ -1,6 +1,7 @@
-"""Hex20 solid bodies: hybrid u-p (C3D20RH analogue) and displacement-only (C3D20R) bricks.
+"""Hex20 solid bodies: hybrid u-p (C3D20H analogue) and displacement-only (C3D20) bricks.
 
-Both use 2x2x2 (reduced) Gauss integration. The hybrid brick carries an element-discontinuous
+Both use 3x3x3 (full) Gauss integration by default, as Abaqus' C3D20(H) and the actuator model do;
+``integration="reduced"`` gives 2x2x2 (C3D20R(H), the paper's elements). The hybrid brick carries an element-discontinuous
 linear pressure ``p = p0 + p1 xi + p2 eta + p3 zeta`` (4 dofs per element). Because ``psi`` is
 quadratic in ``p`` and ``p`` is element-local, ``p`` is condensed exactly: for every displacement
 field it is the element's stationary point
@@ -28,8 +29,9 @@ from .terms import Term, TermOutput, node_dofs
 class Hex20Solid(Morphable, Term):
     """A material body on (a subset of) the Hex20 elements of a mesh.
 
-    formulation: ``"hybrid"`` (C3D20RH analogue) or ``"displacement"`` (C3D20R analogue).
-    integration: ``"reduced"`` (2x2x2, the C3D20R(H) of the paper) or ``"full"`` (3x3x3, C3D20(H)).
+    formulation: ``"hybrid"`` (C3D20H analogue) or ``"displacement"`` (C3D20 analogue).
+    integration: ``"full"`` (3x3x3, C3D20(H), the default, as ``build_actuator_model``'s and
+    ``read_inp``'s C3D20/C3D20H) or ``"reduced"`` (2x2x2, the C3D20R(H) of the paper).
     Reduced integration leaves near-zero-energy modes in thin layers; a follower or cavity pressure's
     load stiffness can drive them negative (seen in the actuator's fiber-free cavity ring at
     resolution 2 beyond 45 % load), which full integration removes.
@@ -41,7 +43,7 @@ class Hex20Solid(Morphable, Term):
     kind = "internal"
 
     def __init__(self, mesh: Mesh, material: Material, formulation: str = "hybrid", elements=None,
-                 integration: str = "reduced", dtype=torch.float64):
+                 integration: str = "full", dtype=torch.float64):
         if formulation not in ("hybrid", "displacement"):
             raise ValueError(f"formulation must be 'hybrid' or 'displacement', got {formulation!r}")
         if integration not in ("reduced", "full"):

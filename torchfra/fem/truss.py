@@ -86,3 +86,22 @@ class Truss(Morphable, Term):
         Ke = vmap(jacfwd(grad(self._element_energy)))(x, jac0, EA).reshape(N, B, 9, 9) if tangent else None
         W = vmap(self._element_energy)(x, jac0, EA).reshape(N, B).sum(1) if energy else None
         return TermOutput(fe, Ke, W, torch.ones(N, dtype=torch.bool, device=u.device))
+
+
+def two_node_truss(model, conn, area: float, modulus: str = "E_fiber", dtype=torch.float64) -> Truss:
+    """Straight two-node trusses (Abaqus T3D2) between model nodes ``conn`` (B, 2), as a
+    :class:`Truss` term to ``model.add``: each gets a middle node at its chord midpoint (appended with
+    ``model.add_nodes``) tied to the mean of its ends, through the ends' own ties where they are
+    embedded (``model.embed`` them first), so its displacement is linear along the chord and its
+    Green strain is the constant strain of the two-node truss. The ends must not be rigid-body or
+    prescribed nodes (a tie's hosts must be free or clamped)."""
+    conn = np.asarray(conn, dtype=np.int64).reshape(-1, 2)
+    if conn.size and (conn.min() < 0 or conn.max() >= model.n_nodes):
+        raise ValueError(f"two_node_truss: node indices must lie in [0, {model.n_nodes}), got {conn.min()}..{conn.max()}")
+    ties = {node: (hosts, weights) for node, hosts, weights in model.embedded_nodes}
+    middle = model.add_nodes(0.5 * (model.X[conn[:, 0]] + model.X[conn[:, 1]]))
+    for m, (a, b) in zip(middle, conn):
+        parts = [ties.get(int(n), (np.array([n]), np.array([1.0]))) for n in (a, b)]
+        hosts, inverse = np.unique(np.concatenate([h for h, _ in parts]), return_inverse=True)
+        model.embed(int(m), hosts, np.bincount(inverse, weights=0.5 * np.concatenate([w for _, w in parts])))
+    return Truss(model.X, np.column_stack([conn, middle]), area=area, modulus=modulus, dtype=dtype)

@@ -7,12 +7,13 @@ and prescribed displacements ramp linearly with ``t``.
 What each torchfra object becomes (ids are 1-based: node ``i`` -> ``i + 1``, mesh element
 ``e`` -> ``e + 1``, truss elements numbered after the mesh elements):
 
-- ``Hex20Solid`` with ``NeoHookean`` -> ``*ELEMENT, TYPE=C3D20R`` (both use Abaqus C3D20 node
+- ``Hex20Solid`` with ``NeoHookean`` -> ``*ELEMENT, TYPE=C3D20R`` or ``C3D20`` (both use Abaqus C3D20 node
   order), ``*SOLID SECTION`` and ``*HYPERELASTIC, NEO HOOKE`` with ``C10, D1`` (the same energy
   ``C10 (I1bar - 3) + (J - 1)^2 / D1``); with ``MooneyRivlin`` ``*HYPERELASTIC, MOONEY-RIVLIN``
   with ``C10, C01, D1`` (energy ``C10 (I1bar - 3) + C01 (I2bar - 3) + (J - 1)^2 / D1``). CalculiX has no hybrid brick: a hybrid body is written
-  as ``element_type`` (C3D20R by default, with a warning; give ``"C3D20RH"`` for Abaqus), so only
-  the displacement formulation compares one to one.
+  as ``element_type`` (by default C3D20R or C3D20, following the body's integration, with a
+  warning; give ``"C3D20RH"``/``"C3D20H"`` for Abaqus), so only the displacement formulation
+  compares one to one.
 - ``Truss`` -> ``T3D3`` (Abaqus order end, middle, end) or two ``T3D2`` per Line3
   (``truss_element``), ``*SOLID SECTION`` with the area, ``*ELASTIC`` with ``E`` and
   ``truss_poisson``. Best effort: CalculiX 2.20 expands trusses into volume elements tied by
@@ -121,7 +122,7 @@ def write_inp(
     model: Model,
     params: dict,
     *,
-    element_type: str = "C3D20R",
+    element_type: str | None = None,
     increments: int = 10,
     nlgeom: bool = True,
     title: str = "torchfra model",
@@ -135,8 +136,10 @@ def write_inp(
     path: output file (``.inp``; the CalculiX job name is its stem).
     params: parameter name -> one number (MPa, 1/MPa, ...), the values of a single member; pressures
         and prescribed displacements are those reached at load factor 1.
-    element_type: element name of the Hex20 bodies (``"C3D20R"`` for CalculiX, ``"C3D20RH"`` for
-        an Abaqus hybrid analogue).
+    element_type: element name of the Hex20 bodies; None (default): ``C3D20R`` for a body with
+        reduced 2x2x2 integration, ``C3D20`` for full 3x3x3 (CalculiX has no hybrid brick); give
+        ``"C3D20RH"``/``"C3D20H"`` for an Abaqus hybrid analogue. A name whose integration differs
+        from the body's is refused.
     increments: number of equal increments from load factor 0 to 1 (``*STATIC, DIRECT``).
     nlgeom: geometric nonlinearity (finite strain, follower pressure).
     title: ``*HEADING`` text.
@@ -227,13 +230,21 @@ def _elements(model, values, element_type, truss_element, truss_poisson, lines):
                         "material, so superposed bodies cannot be exported"
                     )
                 owner[e] = k
-            if term.formulation == "hybrid" and not element_type.upper().endswith("H"):
+            reduced = term.integration == "reduced"
+            name = element_type or ("C3D20R" if reduced else "C3D20")
+            if ("R" in name.upper()[5:]) != reduced:
+                raise ValueError(
+                    f"term {k} integrates with {'2x2x2 (reduced)' if reduced else '3x3x3 (full)'} Gauss points but "
+                    f"element_type={name} is the other rule: give {'C3D20R' if reduced else 'C3D20'}"
+                    f"{'H' if name.upper().endswith('H') else ''}, or element_type=None to follow the body"
+                )
+            if term.formulation == "hybrid" and not name.upper().endswith("H"):
                 warnings.warn(
-                    f"term {k} is a hybrid (u-p) body but is written as {element_type}, a displacement-only "
+                    f"term {k} is a hybrid (u-p) body but is written as {name}, a displacement-only "
                     "element: results agree only where the formulations do (compressible D1, fine meshes)",
                     stacklevel=3,
                 )
-            lines.append(f"*ELEMENT, TYPE={element_type}, ELSET=SOLID{k}")
+            lines.append(f"*ELEMENT, TYPE={name}, ELSET=SOLID{k}")
             for e in term.element_ids.tolist():
                 nodes = [str(n + 1) for n in mesh.elements[e].tolist()]
                 lines += [f"{e + 1}, " + ", ".join(nodes[:15]) + ",", ", ".join(nodes[15:])]

@@ -88,7 +88,7 @@ from ..fem.mesh import Mesh, MeshError
 from ..fem.model import Model
 from ..fem.pressure import CavityPressure, FollowerPressure, check_closed
 from ..fem.solid import Hex20Solid
-from ..fem.truss import Truss
+from ..fem.truss import Truss, two_node_truss
 from ..geometry.embedding import locate_points
 
 __all__ = ["InpError", "InpIds", "read_inp"]
@@ -853,14 +853,10 @@ class _Reader:
             for e, (a, b) in zip(members, rows):
                 if ids.nodes[a] in rigid or ids.nodes[b] in rigid:
                     raise card.error(f"T3D2 element {e} ends on a rigid body: its added middle node cannot be tied")
-            middle = model.add_nodes(0.5 * (model.X[rows[:, 0]] + model.X[rows[:, 1]]))
-            for m, (a, b) in zip(middle, rows):
-                ties = [embedded.get(int(n), (np.array([n]), np.array([1.0]))) for n in (a, b)]
-                hosts, inverse = np.unique(np.concatenate([h for h, _ in ties]), return_inverse=True)
-                weights = np.bincount(inverse, weights=0.5 * np.concatenate([w for _, w in ties]))
-                model.embed(int(m), hosts, weights)
-            ids.nodes = np.concatenate([ids.nodes, np.full(middle.size, -1, dtype=np.int64)])
-            rows = np.column_stack([rows, middle])
+            first = model.n_nodes
+            truss = two_node_truss(model, rows, area=area, modulus=modulus, dtype=self.dtype)
+            ids.nodes = np.concatenate([ids.nodes, np.full(model.n_nodes - first, -1, dtype=np.int64)])
+            return truss
         return Truss(model.X, rows, area=area, modulus=modulus, dtype=self.dtype)
 
     def _pressure_groups(self, brick_index, face_sets) -> list[tuple[str, str, float]]:
