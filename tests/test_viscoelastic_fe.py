@@ -35,7 +35,9 @@ def uniaxial(stretch=1.5):
     """Block on rollers (x=0, y=0, z=0 planes), the face z = L pulled to stretch * L by the load factor."""
     mesh = box_mesh((1.0, 1.0, L), (1, 1, 2), distortion=0.0)
     model = fem.Model(mesh)
-    model.add(fem.Hex20Solid(mesh, fem.NeoHookean()))
+    # 2x2x2 points, as this verification was built (the homogeneous state is exact under either rule;
+    # with 3x3x3 points and D1 = 1e-7, Newton misses TIGHT's tolerances at the time step 0.025)
+    model.add(fem.Hex20Solid(mesh, fem.NeoHookean(), integration="reduced"))
     model.clamp("xmin", [0])
     model.clamp("ymin", [1])
     model.clamp("zmin", [2])
