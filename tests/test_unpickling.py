@@ -113,3 +113,17 @@ def test_no_pickle_loading_in_the_code():
                         r"torch\.load\((?![^)]*weights_only\s*=\s*True)"):
             offenders += [f"{path.relative_to(ROOT)}: {m.group(0)}" for m in re.finditer(pattern, text)]
     assert not offenders, offenders
+
+
+def test_planted_reduced_batch_checkpoint_is_refused_and_never_runs(tmp_path, capsys):
+    """A ``batch_*.partial.npz`` (a reduced batch's per-load-step state) holding a pickle payload is
+    named as unreadable and its batch solved from the start; the payload never runs."""
+    from torchfra.forward import _read_partial
+
+    marker = tmp_path / "payload_ran"
+    path = tmp_path / "batch_00002.partial.npz"
+    np.savez(path, members=np.arange(2), digest=np.array("d"), load_factors=np.ones(1),
+             q_out=np.array([Payload(marker)], dtype=object))
+    assert _read_partial(path, [0, 1], "d", np.ones(1)) is None
+    assert "batch_00002.partial.npz is not a readable batch checkpoint" in capsys.readouterr().err
+    assert not marker.exists()

@@ -263,7 +263,8 @@ def _lock_owner() -> dict:
 
 def _stale(lock: Path) -> str | None:
     """Why a lock is abandoned (its process is gone, its PID was reused, or another host's lock
-    expired), or None while its owner may still be working."""
+    expired, or this very process left it when interrupted), or None while its owner may still
+    be working."""
     try:
         owner = json.loads(lock.read_text())
         host, pid, start = owner["host"], int(owner["pid"]), owner["start"]
@@ -278,6 +279,8 @@ def _stale(lock: Path) -> str | None:
         return f"process {pid} has ended"
     if start is not None and now not in ("unknown", start):
         return f"process id {pid} now belongs to another process"
+    if pid == os.getpid():  # one run_forward at a time per process: an earlier call here was interrupted
+        return "an interrupted earlier run in this process left it"
     return None
 
 
@@ -396,6 +399,41 @@ def _reduced_model(run_dir: Path, model, snap_records: list[dict], params, snap,
     np.savez(tmp, **hyper.arrays())
     tmp.replace(path)
     return hyper
+
+
+def _reduction_digest(hyper) -> str:
+    """What a reduced batch's checkpoint was solved with: the basis, the sampled blocks, their weights."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for key, value in sorted(hyper.arrays().items()):
+        h.update(key.encode())
+        h.update(np.ascontiguousarray(value).tobytes())
+    return h.hexdigest()[:32]
+
+
+def _write_partial(path: Path, batch: list[int], digest: str, state: dict) -> None:
+    """A reduced batch's state after a load step (arrays only), so a kill loses one load step of it."""
+    tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
+    np.savez(tmp, members=np.asarray(batch, dtype=np.int64), digest=np.array(digest), **state)
+    tmp.replace(path)
+
+
+def _read_partial(path: Path, batch: list[int], digest: str, load) -> dict | None:
+    """The saved state of this very batch on this very reduction, or None (absent, another batch or
+    basis, unreadable: solved from its start again)."""
+    if not path.exists():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            state = {k: f[k] for k in f.files}
+        same = (state["members"].tolist() == list(batch) and str(state["digest"]) == digest
+                and np.array_equal(state["load_factors"], load))
+    except (OSError, ValueError, EOFError, KeyError) as err:  # a pickle payload is refused here, never run
+        print(f"forward ensemble: {path} is not a readable batch checkpoint ({type(err).__name__}: {err}); "
+              "its members are solved from the start", file=sys.stderr)
+        return None
+    return state if same else None
 
 
 def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = True) -> dict:
@@ -547,7 +585,14 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
             if hyper is not None:
                 t_batch = time.perf_counter()
                 idx = torch.as_tensor(batch)
-                rs = solve_reduced(hyper, {k: v[idx] for k, v in params.items()}, load)
+                partial = path_of[batch[0]].with_name(f"batch_{batch[0]:05d}.partial.npz")
+                digest = _reduction_digest(hyper)
+                resume = _read_partial(partial, batch, digest, load)
+                if resume is not None and progress:
+                    bar.write(f"forward ensemble: resuming reduced members {batch} after load step "
+                              f"{int(resume['step']) + 1} of {load.size} (saved in {partial.name})")
+                rs = solve_reduced(hyper, {k: v[idx] for k, v in params.items()}, load, resume=resume,
+                                   on_step=lambda state: _write_partial(partial, batch, digest, state))
                 wall = (time.perf_counter() - t_batch) / len(batch)
                 for j, m in enumerate(batch):
                     if rs.status[j] != "converged" or not rs.error_estimate[j] <= config.reduced_tol:
@@ -561,6 +606,8 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
                     _save_solution(path_of[m], operator(u).numpy(), rs.u[j:j + 1, -1].numpy(), rec, wall,
                                    method=np.array(["reduced"]), error_estimate=rs.error_estimate[j:j + 1],
                                    full_tangents=rs.full_tangents[j:j + 1])
+            if hyper is not None:
+                partial.unlink(missing_ok=True)  # its members are saved (or go to full Newton below)
             for m in redo:  # the reduced answer failed its check: Newton on the full model
                 solve_full(m, m + 1, error_estimate=np.asarray(
                     [np.nan if hyper is None else rs.error_estimate[batch.index(m)]]))

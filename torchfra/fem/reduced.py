@@ -309,11 +309,16 @@ class ReducedSolution:
 
 def solve_reduced(hyper: HyperReducedModel, params: dict, load_factors, xtol: float = 1e-3, polish_tol: float = 1e-4,
                   max_iterations: int = 25, max_polish: int = 10, check: bool = True,
-                  refresh: float = 0.25, predictor: str = "quadratic", start=None) -> ReducedSolution:
+                  refresh: float = 0.25, predictor: str = "quadratic", start=None, resume: dict | None = None,
+                  on_step=None) -> ReducedSolution:
     """Solve every member (params: name -> (N,)) at the load factors (increasing, in (0, 1]) on the
     reduced basis of ``hyper``; see the module docstring for the steps. ``start``: ``(q0 (N, k),
     lam0)``, equilibria reached at load factor ``lam0`` (e.g. with other parameters: the restart
-    filter), to continue from instead of the unloaded state."""
+    filter), to continue from instead of the unloaded state.
+
+    ``on_step(state)`` is called after every load factor with the solve's whole state (a dict of
+    arrays: a checkpoint); ``resume=state`` continues from it exactly as the solve would have gone
+    on (same members, load factors and basis)."""
     model, V = hyper.model, hyper.basis.V
     dtype = model.dtype
     params = {k: torch.as_tensor(v, dtype=dtype).reshape(-1) for k, v in params.items()}
@@ -331,7 +336,21 @@ def solve_reduced(hyper: HyperReducedModel, params: dict, load_factors, xtol: fl
     have_tangent = np.zeros(N, dtype=bool)
     tangents = np.zeros(N, dtype=np.int64)
     full_tangents = np.zeros(N, dtype=np.int64)
+    first = 0
+    if resume is not None:
+        first = int(resume["step"]) + 1
+        q_out[:, :first] = torch.as_tensor(resume["q_out"])
+        history = [(float(lam_h), torch.as_tensor(q_h).clone()) for lam_h, q_h in
+                   zip(resume["history_lam"], resume["history_q"])]
+        K_last = torch.as_tensor(resume["K_last"]).clone()
+        status = np.asarray(resume["status"]).astype(object)
+        alive, have_tangent = np.asarray(resume["alive"]).copy(), np.asarray(resume["have_tangent"]).copy()
+        iterations, polish = np.asarray(resume["iterations"]).copy(), np.asarray(resume["polish"]).copy()
+        tangents, full_tangents = np.asarray(resume["tangents"]).copy(), np.asarray(resume["full_tangents"]).copy()
+        timings.update(zip(("sampled", "polish", "check"), np.asarray(resume["timings"]).tolist()))
     for t, lam in enumerate(outs):
+        if t < first:
+            continue
         q = _predict(history, lam, predictor)
         for phase in ("sampled", "polish"):
             active = alive.copy()
@@ -395,6 +414,13 @@ def solve_reduced(hyper: HyperReducedModel, params: dict, load_factors, xtol: fl
                 status[m] = "failed"
         history.append((lam, q.clone()))
         q_out[:, t] = torch.where(torch.as_tensor(alive)[:, None], q, torch.full_like(q, float("nan")))
+        if on_step is not None:
+            kept = history[-3:]  # all the predictor looks back on
+            on_step({"step": np.int64(t), "load_factors": outs, "q_out": q_out[:, : t + 1].numpy(),
+                     "history_lam": np.array([h[0] for h in kept]), "history_q": torch.stack([h[1] for h in kept]).numpy(),
+                     "K_last": K_last.numpy(), "status": status.astype(str), "alive": alive, "have_tangent": have_tangent,
+                     "iterations": iterations, "polish": polish, "tangents": tangents, "full_tangents": full_tangents,
+                     "timings": np.array([timings["sampled"], timings["polish"], timings["check"]])})
     a = q_out @ V.T
     u = torch.full((N, T, model.n_nodes, 3), float("nan"), dtype=dtype)
     for t, lam in enumerate(outs):
