@@ -705,10 +705,11 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, r
                     restart_threads: int | None = None, restart_ranks: RestartRanks | None = None) -> dict:
     """Run every filter on the recording; return everything the report needs (see scripts/calibrate.py).
     The forward ensemble is cached under ``runs_dir`` (default: the run folder's parent).
-    ``restart_threads``: torch threads of the restart filter's FE re-solves (default: as set). It runs
-    after the forward ensemble, when the cores its worker processes used are free; its batched
-    element kernels use them (measured: a 20-member reduced re-solve at resolution 1 took 16.6 s on
-    1 thread, 9.9 s on 2)."""
+    ``restart_threads``: torch threads of the restart filter's FE re-solves (default: as set): when
+    they run in this process alone, after the forward ensemble, the cores the other processes used
+    are free for them (measured: a 20-member reduced re-solve at resolution 1 took 16.6 s on 1
+    thread, 9.9 s on 2). ``restart_ranks``: a :class:`RestartRanks` whose ranks share those
+    re-solves instead (faster: 231 s against 286 s on 2 threads for the main job's restart filter)."""
     from .assimilation import hierarchical_filter
     from .forward import run_forward
 
