@@ -142,7 +142,11 @@ def run_cases(todo: list[dict], rows: dict, results: Path, a, run) -> tuple[dict
     r = ranks()
     parts = sorted(results.parent.glob("results.rank*.json")) if r.rank == 0 else []
     for part in parts:  # a stopped parallel run's rows: into results.json before any rank writes again
-        rows.update({row["case"]: row for row in json.loads(part.read_text())["rows"]})
+        try:
+            rows.update({row["case"]: row for row in json.loads(part.read_text())["rows"]})
+        except (ValueError, KeyError, TypeError) as err:
+            raise ValueError(f"{part}: not the rows of a stopped suite run ({type(err).__name__}: {err}); delete it "
+                             "to run its cases again") from err
     if parts:
         _write_json(results, {"settings": vars(a), "rows": list(rows.values())})
         for part in parts:

@@ -85,3 +85,19 @@ def test_scenario_suite_shares_its_cases_over_ranks_and_resumes(tmp_path):
     assert "14 cases, 2 reused" in again.stdout
     rows3 = json.loads((tmp_path / "two" / "results.json").read_text())["rows"]
     assert len(rows3) == 14 and {r["case"] for r in rows3} == rows1.keys()
+
+
+def test_a_damaged_per_rank_rows_file_is_named(tmp_path):
+    """A ``results.rank<R>.json`` that is not a stopped run's rows stops the suite with its name and
+    the way out, before any case runs."""
+    import pytest
+
+    sys.path.insert(0, str(ROOT / "tests"))
+    from helpers import load_script
+
+    suite = load_script("scenarios")
+    (tmp_path / "results.rank1.json").write_text("{not json")
+    ran = []
+    with pytest.raises(ValueError, match=r"results.rank1.json: not the rows of a stopped suite run .*delete it"):
+        suite.run_cases([{"case": "a"}], {}, tmp_path / "results.json", None, ran.append)
+    assert not ran

@@ -356,6 +356,7 @@ class RestartRanks:
         self.busy = False  # inside a solve: a stop now would not match what the other ranks wait for
         self.stopped = False
         self.names: list[str] = []
+        self.solver, self.reduced = None, None  # rank 0's own share is solved with these (set by start)
 
     def _header(self, cmd: float, value: float = 0.0) -> None:
         from .distributed import broadcast_tensor
