@@ -570,6 +570,7 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
         basis_members, basis_records = list(snap), list(snap_records)
         open_bar([(m, m + 1) for m in rest], "reduced members")
         queue = r.share(left) if r.parallel else rest
+        digest, digest_of = "", None
         i = 0
         while i < len(queue):
             batch = []
@@ -586,7 +587,8 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
                 t_batch = time.perf_counter()
                 idx = torch.as_tensor(batch)
                 partial = path_of[batch[0]].with_name(f"batch_{batch[0]:05d}.partial.npz")
-                digest = _reduction_digest(hyper)
+                if digest_of is not hyper:  # once per reduction (built again on enrichment)
+                    digest, digest_of = _reduction_digest(hyper), hyper
                 resume = _read_partial(partial, batch, digest, load)
                 if resume is not None and progress:
                     bar.write(f"forward ensemble: resuming reduced members {batch} after load step "
