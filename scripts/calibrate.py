@@ -169,9 +169,12 @@ def main(argv=None) -> dict:
             fwd_only = {"members": a.members, "resolution": a.mesh, "pressure": a.forward_pressure, "inp": a.inp,
                         "camera": a.camera, "face": a.face}
             config = replace(base, **prior, **{k: v for k, v in fwd_only.items() if v is not None})
-            run_forward(forward_config(config), forward_dir(config, a.runs_dir), progress=False)
-            if config.restart and not a.no_restart:
-                serve_restart(config, r)
+            try:
+                run_forward(forward_config(config), forward_dir(config, a.runs_dir), progress=False)
+                if config.restart and not a.no_restart:
+                    serve_restart(config, r)
+            finally:  # leave the group before the interpreter exits: a gloo group still open at exit can
+                finish(r, wait=False)  # abort the process ("terminate called without an active exception")
             return {}
     if a.pressure is not None and a.recording is None:
         raise ValueError("--pressure names the trace of a DIC export: give the export with --recording")
