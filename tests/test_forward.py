@@ -204,3 +204,9 @@ def test_a_reduced_batch_killed_mid_solve_resumes_after_its_last_load_step(tmp_p
     assert "resuming reduced members" in said.out + said.err, said
     assert np.array_equal(resumed["Y_fe"], whole["Y_fe"]) and np.array_equal(resumed["status"], whole["status"])
     assert not list((tmp_path / "killed" / "members").glob("batch_*"))
+    # a checkpoint of a batch that an earlier stopped run shared out otherwise (other ranks) is removed
+    # once every member is saved, and nothing is solved again
+    orphan = tmp_path / "killed" / "members" / "batch_00003.partial.npz"
+    np.savez(orphan, members=np.array([3, 4]), digest=np.array("other"))
+    again = run_forward(config, tmp_path / "killed", progress=False)
+    assert not orphan.exists() and np.array_equal(again["Y_fe"], whole["Y_fe"])

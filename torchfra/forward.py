@@ -637,6 +637,8 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
         if bar is not None:
             bar.close()
         return run_forward(config, run_dir, progress)
+    for spent in chunks_dir.glob("batch_*.partial.npz"):  # every member is saved: checkpoints of batches an
+        spent.unlink(missing_ok=True)  # earlier stopped run shared out otherwise (other ranks, workers) are spent
     if bar is not None:
         bar.update(bar.total - bar.n)
         bar.close()
