@@ -203,6 +203,7 @@ def test_catalogue_names_and_nulls():
         "mooney_rivlin": {"C01": 0.0}, "compressibility": {"D1": 0.0}, "gravity": {"density": 0.0},
         "compliant_base": {"c_n": 0.0, "c_t": 0.0}, "fiber_stiffness": {},
         "pressure_sensor": {"pressure_gain": 1.0, "pressure_offset": 0.0}, "cavity_offset": {"delta_y": 0.0},
+        "fiber_pitch": {"fiber_pitch": 2.0},
     }
     for c in CANDIDATES.values():
         for p in c.parameters:

@@ -69,7 +69,7 @@ def test_a_deck_beams_concealed_weight_is_named_gravity(deck, tmp_path):
     out = diagnose(rec, noise=SIGMA, correlation=0.0, candidates="all", run_dir=tmp_path / "diag", progress=False,
                    load_steps=5, deck=DeckModel(str(deck), "+x", None, GRAVITY))
     assert out["model"]["kind"] == "deck" and out["model"]["digest"]
-    assert set(out["not_available"]) == {"compliant_base", "cavity_offset", "fiber_stiffness"}
+    assert set(out["not_available"]) == {"compliant_base", "cavity_offset", "fiber_pitch", "fiber_stiffness"}
     assert out["mismatch_detected"]["detected"]
     assert out["decision"] == "gravity", (out["decision"], [(r.get("name"), r.get("p_value")) for r in out["ranking"]])
     rho = out["parameters"]["extended"]["density"]

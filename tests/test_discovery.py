@@ -97,13 +97,13 @@ def test_score_statistic_equals_the_fitted_drop_and_flags_confounding():
     b = rng.standard_normal(shape)
     s1 = rng.standard_normal(shape)
     names = ["C10", "C01", "density", "c_n", "c_t", "pressure_gain", "pressure_offset", "D1", "E_fiber", "delta_y",
-             "g1", "tau1"]  # tau1: no effect at g1's null (a zero column), the nuisance of the creep's score test
+             "fiber_pitch", "g1", "tau1"]  # tau1: no effect at g1's null (a zero column), the nuisance of the creep's score test
     J = np.zeros(shape + (len(names),))
     J[..., 0] = b
     # sensitivities per prior std (a change of one prior std moves the observations by O(noise))
     J[..., names.index("density")] = s1 / COORDINATES["density"].prior_std
     J[..., names.index("pressure_gain")] = 3.0 * b + 1e-4 * rng.standard_normal(shape)  # confounded
-    for n in ("C01", "c_n", "c_t", "pressure_offset", "D1", "E_fiber", "delta_y", "g1"):
+    for n in ("C01", "c_n", "c_t", "pressure_offset", "D1", "E_fiber", "delta_y", "fiber_pitch", "g1"):
         J[..., names.index(n)] = rng.standard_normal(shape) / COORDINATES[n].prior_std
     y = 0.3 * s1 + rng.standard_normal(shape)
     bf = b.ravel()

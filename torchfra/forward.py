@@ -16,7 +16,7 @@ import os
 import socket
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -456,10 +456,15 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
     r = ranks()  # torchrun: members are shared out by rank, not claimed through lock files
     progress = progress and r.rank == 0
     config = with_deck(config)
-    _check_resume(run_dir, config)
     torch.set_num_threads(config.threads)
     t0 = time.perf_counter()
     model, info, base = forward_model(config)
+    if config.method == "reduced" and any(t.global_dofs for t in model.terms):
+        if progress:  # a fiber pitch: each member's own fiber embedding, no shared blocks to hyper-reduce
+            print("forward ensemble: the model couples each member's dofs its own way (a fiber pitch); every member "
+                  "is solved by full Newton", flush=True)
+        config = replace(config, method="full")
+    _check_resume(run_dir, config)
     mesh = model.mesh
     operator = ObservationOperator(mesh, observed_faces(mesh, config), points="nodes")
     params = member_parameters(config, base)

@@ -27,6 +27,7 @@ c_n, c_t (mm^3/N)  linear    N(0, 2^2), >= 0                  0 (clamp)         
 pressure_gain      linear    N(1, 0.2^2), > 0                 1                       pressure_sensor
 pressure_offset    linear    N(0, 0.003^2) MPa                0                       pressure_sensor
 delta_y (mm)       linear    N(0, 0.4^2), in [-1, 0.5]        0                       cavity_offset
+fiber_pitch (deg)  linear    N(2, 0.5^2), in [1, 4]           2 (the drawn pitch)     fiber_pitch
 g1 (1)             linear    N(0, 0.3^2), in [0, 0.95]        0                       viscoelasticity
 tau1 (duration)    log       log tau1 ~ N(log 0.1, 1.5^2)     (none: see below)       viscoelasticity
 pressure_lag       linear    N(0, 0.05^2), in [-0.2, 0.2]     0                       (viscoelasticity's rival)
@@ -54,6 +55,7 @@ import torch
 
 from . import fem
 from .fem.sensitivity import sensitivities
+from .fem.helix import pitch_parameter
 from .geometry.actuator import CAVITY_OFFSET, ActuatorGeometry, build_actuator_model
 from .history import G1, LAG, TAU1, creep_load, delayed_load, normalized_time
 from .observe import ObservationError, ObservationOperator, visible_faces
@@ -102,6 +104,7 @@ class Coordinate:
 
 
 C10_PRIOR_MEAN = 0.0068
+FIBER_PITCH = pitch_parameter(ActuatorGeometry().pitch_deg)
 COORDINATES = {
     c.name: c
     for c in (
@@ -116,6 +119,8 @@ COORDINATES = {
         Coordinate("pressure_gain", "1", "linear", 1.0, 0.2, 0.2, 5.0, 1.0, "pressure_sensor"),
         Coordinate("pressure_offset", "MPa", "linear", 0.0, 0.003, -0.02, 0.02, 0.0, "pressure_sensor"),
         Coordinate("delta_y", "mm", "linear", 0.0, 0.4, CAVITY_OFFSET.low, CAVITY_OFFSET.high, 0.0, "cavity_offset"),
+        Coordinate("fiber_pitch", FIBER_PITCH.unit, "linear", FIBER_PITCH.null, 0.5, FIBER_PITCH.low, FIBER_PITCH.high,
+                   FIBER_PITCH.null, "fiber_pitch"),
         Coordinate("g1", G1.unit, "linear", 0.0, 0.3, G1.low, G1.high, 0.0, "viscoelasticity"),
         Coordinate("tau1", TAU1.unit, "log", math.log(0.1), 1.5, TAU1.low, TAU1.high, 0.1, "viscoelasticity"),
         Coordinate("pressure_lag", LAG.unit, "linear", 0.0, 0.05, LAG.low, LAG.high, 0.0, "pressure_lag"),
@@ -124,8 +129,15 @@ COORDINATES = {
 CANDIDATE_PARAMETERS = {
     "mooney_rivlin": ("C01",), "compressibility": ("D1",), "fiber_stiffness": ("E_fiber",),
     "gravity": ("density",), "compliant_base": ("c_n", "c_t"), "pressure_sensor": ("pressure_gain", "pressure_offset"),
-    "cavity_offset": ("delta_y",), "viscoelasticity": ("g1", "tau1"), "pressure_lag": ("pressure_lag",),
+    "cavity_offset": ("delta_y",), "fiber_pitch": ("fiber_pitch",), "viscoelasticity": ("g1", "tau1"), "pressure_lag": ("pressure_lag",),
 }
+# parameters whose sensitivity is a central secant over this step (in the coordinate), not the exact
+# derivative: a pitch change slides the fiber nodes through the bricks (~100 mm per deg at the
+# helices' ends), so the discrete model's response carries a ripple whose exact slope dwarfs the
+# physical one (measured at resolution 1 on the proof suite's grid: |dY/d pitch| 696 exact at the
+# null against 1.4 as a secant over +-0.05 to +-0.2 deg, scripts/study_fiber_pitch.py); the secant
+# over half the prior's std sees the physics
+SECANT_STEPS = {"fiber_pitch": 0.25}
 # parameters that only act through the frame-to-load map: no FE solve depends on them
 LOAD_MAP_ONLY = ("g1", "tau1", "pressure_lag")
 # parameters identified only away from another's null (tau1 only once g1 != 0): never score-tested,
@@ -149,7 +161,8 @@ def null_coordinate(name: str, c10: float) -> float:
 
 # candidates that need the paper's actuator: a base face to put springs under, a cavity to move
 ACTUATOR_ONLY = {"compliant_base": "it puts springs under the actuator's base face instead of its clamp",
-                 "cavity_offset": "it moves the actuator's cavity by a morph of its mesh"}
+                 "cavity_offset": "it moves the actuator's cavity by a morph of its mesh",
+                 "fiber_pitch": "it winds the actuator's fiber helices at another pitch"}
 
 
 @dataclass(frozen=True)
@@ -222,7 +235,7 @@ class ActuatorPhysics:
                 ActuatorGeometry(resolution=self.resolution), material=material,
                 base="compliant" if "compliant_base" in self.candidates else "clamp",
                 gravity=GRAVITY_DIRECTION if "gravity" in self.candidates else None,
-                cavity_offset="cavity_offset" in self.candidates)
+                cavity_offset="cavity_offset" in self.candidates, fiber_pitch="fiber_pitch" in self.candidates)
             faces = None
         else:
             self.model, self.info = self._deck_model(material)
@@ -336,6 +349,8 @@ class ActuatorPhysics:
             p["c_n"], p["c_t"] = nat["c_n"].reshape(-1), nat["c_t"].reshape(-1)
         if "cavity_offset" in self.candidates:
             p["delta_y"] = nat["delta_y"].reshape(-1)
+        if "fiber_pitch" in self.candidates:
+            p["fiber_pitch"] = nat["fiber_pitch"].reshape(-1)
         return p
 
     def frame_loads(self, z: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -360,21 +375,26 @@ class ActuatorPhysics:
                 "z": {k: float(f"{v:.15e}") for k, v in sorted(z.items())}}
         return hashlib.sha256(json.dumps(desc, sort_keys=True).encode()).hexdigest()[:20]
 
-    def _solve_nodal(self, z: dict[str, float]):
-        """u and du/dlambda at lambda = 0, steps (S+1, n, 3) and du/dz (S+1, n, 3, d) for ``fe_names``;
-        iterations. Solves are kept in memory (the last few) and in ``cache_dir``."""
+    def _solve_nodal(self, z: dict[str, float], values_only: bool = False):
+        """u and du/dlambda at lambda = 0, steps (S+1, n, 3) and du/dz (S+1, n, 3, d) for ``fe_names``
+        (NaN with ``values_only``); iterations. Solves are kept in memory (the last few) and in ``cache_dir``."""
         z = {n: float(z[n]) for n in self.fe_names}
         key = self._key(z)
         if key in self._memo:
             return (*self._memo[key][:-1], True)
-        out = self._solve_nodal_uncached(z, key)
-        if len(self._memo) >= 4:
+        if values_only and key + "_values" in self._memo:
+            return (*self._memo[key + "_values"][:-1], True)
+        out = self._solve_nodal_uncached(z, key, values_only)
+        key = key + "_values" if values_only else key
+        if len(self._memo) >= 8:
             self._memo.pop(next(iter(self._memo)))
         self._memo[key] = out
         return out
 
-    def _solve_nodal_uncached(self, z: dict[str, float], key: str):
+    def _solve_nodal_uncached(self, z: dict[str, float], key: str, values_only: bool = False):
         path = None if self.cache_dir is None else self.cache_dir / f"solve_{key}.npz"
+        if values_only and path is not None and not path.exists():
+            path = self.cache_dir / f"solve_{key}_values.npz"
         if path is not None and path.exists():
             with np.load(path, allow_pickle=False) as f:
                 return f["u"], f["du_dlam"], f["du"], bool(f["ok"]), int(f["iterations"]), True
@@ -394,10 +414,10 @@ class ActuatorPhysics:
                                 torch.cat([torch.zeros_like(sol.a[:, :1]), sol.a], 1), sol.status,
                                 sol.load_reached, sol.iterations, sol.increments, sol.cutbacks,
                                 sol.last_residual, sol.residual_history)
-            S = sensitivities(self.model, self.params_of, zt, sol0, names=self.fe_names)
+            S = sensitivities(self.model, self.params_of, zt, sol0, names=[] if values_only else self.fe_names)
             u = sol0.u[0, :, :n].numpy()
             du_dlam = S.du_dlambda[0, :, :n].numpy()
-            du = S.du[0, :, :n].numpy()
+            du = np.full_like(du, np.nan) if values_only else S.du[0, :, :n].numpy()
         if path is not None:
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_name(path.stem + ".tmp.npz")
@@ -419,8 +439,9 @@ class ActuatorPhysics:
             return None
         return np.concatenate([[0.0], self.steps]), self._observed(u), self._observed(du_dlam)
 
-    def observe(self, z: dict[str, float]) -> Evaluation:
-        """Y and dY/dz at the recording's frames and points for coordinates ``z`` (every name)."""
+    def observe(self, z: dict[str, float], values_only: bool = False) -> Evaluation:
+        """Y and dY/dz at the recording's frames and points for coordinates ``z`` (every name);
+        ``values_only``: Y alone (J NaN), without the parameter sensitivities' cost."""
         import time
 
         missing = sorted(set(self.names) - set(z))
@@ -428,7 +449,7 @@ class ActuatorPhysics:
             raise ValueError(f"parameters {missing} have no value; the model's parameters are {self.names}")
         t0 = time.perf_counter()
         z = {n: float(z[n]) for n in self.names}
-        u, du_dlam, du, ok, its, reused = self._solve_nodal(z)
+        u, du_dlam, du, ok, its, reused = self._solve_nodal(z, values_only)
         K, P, d = self.rec.n_frames, self.W.shape[0], len(self.names)
         if not ok:
             return Evaluation(z, list(self.names), np.full((K, P, 2), np.nan), np.full((K, P, 2, d), np.nan), False,
@@ -451,7 +472,29 @@ class ActuatorPhysics:
         g00, g10, g01, g11 = (6 * t**2 - 6 * t) / h, 3 * t**2 - 4 * t + 1, (-6 * t**2 + 6 * t) / h, 3 * t**2 - 2 * t
         dY = g00[e] * Ys[i] + g10[e] * dYs[i] + g01[e] * Ys[i + 1] + g11[e] * dYs[i + 1]
         J = (1 - t)[:, None, None, None] * Js[i] + t[:, None, None, None] * Js[i + 1] + dY[..., None] * dlam[:, None, None, :]
+        for name, step in SECANT_STEPS.items():
+            if name in self.names and not values_only:
+                J[..., self.names.index(name)] = self._secant(z, name, step, Y)
         return Evaluation(z, list(self.names), Y, J, True, its, time.perf_counter() - t0, reused)
+
+    def _secant(self, z: dict[str, float], name: str, step: float, Y: np.ndarray) -> np.ndarray:
+        """dY/dz[name] as the central secant over +-``step`` (one-sided at the admissible range's end or
+        where a side does not converge; NaN when neither does)."""
+        c = COORDINATES[name]
+        sides = {}
+        for h in (step, -step):
+            zh = c.clip(z[name] + h)
+            if zh != z[name]:
+                ev = self.observe({**z, name: zh}, values_only=True)
+                if ev.ok:
+                    sides[zh] = ev.Y
+        if len(sides) == 2:
+            (a, Ya), (b, Yb) = sides.items()
+            return (Ya - Yb) / (a - b)
+        if len(sides) == 1:
+            (a, Ya), = sides.items()
+            return (Ya - Y) / (a - z[name])
+        return np.full(Y.shape, np.nan)
 
 
 def _deck_faces(mesh, deck: DeckModel):

@@ -278,7 +278,7 @@ class ParameterSet:
                                     material=fem.MooneyRivlin() if "mooney_rivlin" in on else None,
                                     base="compliant" if "compliant_base" in on else "clamp",
                                     gravity=GRAVITY_DIRECTION if "gravity" in on else None,
-                                    cavity_offset="cavity_offset" in on)
+                                    cavity_offset="cavity_offset" in on, fiber_pitch="fiber_pitch" in on)
 
     def model_parameters(self, Q: torch.Tensor, pressure: float, bulk_ratio: float = 1000.0,
                          E_fiber: float = 31000.0, base: dict | None = None) -> dict[str, torch.Tensor]:
@@ -306,7 +306,7 @@ class ParameterSet:
         p = {"C10": c10, "D1": values["D1"] if "D1" in values else 1.0 / (bulk_ratio * c10),
              "E_fiber": values.get("E_fiber", torch.full((N,), E_fiber, dtype=torch.float64)),
              "P": torch.full((N,), pressure, dtype=torch.float64)}
-        for n in ("C01", "density", "c_n", "c_t", "delta_y"):
+        for n in ("C01", "density", "c_n", "c_t", "delta_y", "fiber_pitch"):
             if n in values:
                 p[n] = values[n]
         return p

@@ -3,13 +3,14 @@
 Build a :class:`Model` from a :class:`Mesh`, add energy terms (:class:`Hex20Solid` with a
 :class:`NeoHookean` or :class:`MooneyRivlin` material, :class:`Truss`, :class:`CavityPressure`,
 :class:`FollowerPressure`, and the candidate terms :class:`Gravity`, :class:`ElasticSupport`,
-:class:`SensorCavityPressure`, and :class:`ViscousOverstress` with
+:class:`SensorCavityPressure`, :class:`FiberPitch`, and :class:`ViscousOverstress` with
 :func:`solve_history` for a time trace with history variables),
 constrain it (``clamp``, ``prescribe``, ``rigid``, ``embed``) and call :func:`solve` with one
 tensor per parameter holding every member's value.
 """
 from .constraints import rotation_matrix
 from .gravity import Gravity
+from .helix import FiberPitch
 from .materials import Material, MooneyRivlin, NeoHookean, ParameterError
 from .mesh import Mesh, MeshError
 from .model import Evaluation, Model
@@ -23,7 +24,7 @@ from .truss import Truss, two_node_truss
 from .viscoelastic import HistorySolution, ViscousOverstress, solve_history, with_viscoelasticity
 
 __all__ = [
-    "CavityPressure", "ElasticSupport", "Evaluation", "FollowerPressure", "Gravity", "Hex20Solid", "Material",
+    "CavityPressure", "ElasticSupport", "FiberPitch", "Evaluation", "FollowerPressure", "Gravity", "Hex20Solid", "Material",
     "Mesh", "MeshError", "Model", "MooneyRivlin", "NeoHookean", "NewtonOptions", "ParameterError",
     "SensorCavityPressure", "Solution", "Term", "TermOutput", "Truss", "rotation_matrix", "solve", "two_node_truss",
     "support_face", "WarmStart", "HistorySolution", "ViscousOverstress", "solve_history", "with_viscoelasticity",

@@ -16,6 +16,9 @@ pressure_sensor       pressure_gain (1),           ``with_pressure_sensor(model)
                       pressure_offset (0) MPa
 cavity_offset         delta_y (0) mm               ``model.morph("delta_y", field, info)`` (e.g.
                                                    ``build_actuator_model(cavity_offset=True)``)
+fiber_pitch           fiber_pitch (drawn) deg          ``build_actuator_model(fiber_pitch=True)``
+                                                   (``FiberPitch``: the trusses wound at each
+                                                   member's pitch, embedded where they fall)
 viscoelasticity       g1 (0), tau1 s [g2, tau2]    ``with_viscoelasticity(model)``, solved along a
                                                    time trace by ``solve_history`` (history
                                                    variables; ``fem.viscoelastic``)
@@ -31,6 +34,7 @@ from dataclasses import dataclass
 
 from ..params import ParameterInfo
 from .gravity import Gravity
+from .helix import pitch_parameter
 from .materials import Material, MooneyRivlin, NeoHookean
 from .model import Model
 from .pressure import CavityPressure
@@ -75,6 +79,8 @@ CANDIDATES = {
                   (SensorCavityPressure.parameters["pressure_gain"], SensorCavityPressure.parameters["pressure_offset"])),
         Candidate("cavity_offset", "the cavity sits off its nominal axis along y (a misplaced mould core; a morph "
                   "of the reference mesh)", (_cavity_offset_parameter(),)),
+        Candidate("fiber_pitch", "the fibers are wound at another pitch than drawn (each member's fibers embedded "
+                  "where they fall)", (pitch_parameter(2.0),)),
     )
 }
 

@@ -111,6 +111,20 @@ def hex20_shape(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return N, dN
 
 
+def hex20_shape_values(xi: torch.Tensor) -> torch.Tensor:
+    """N (P, 20) of the Hex20 shape functions at natural points ``xi`` (P, 3), in torch, so that it
+    differentiates with respect to ``xi`` (forward and reverse mode); the functions of
+    :func:`hex20_shape` (pinned by tests)."""
+    nat = torch.as_tensor(HEX20_NATURAL, dtype=xi.dtype, device=xi.device)
+    t = xi[:, None, :]  # (P, 1, 3) against nat (20, 3)
+    f = 1 + t * nat
+    corner = f.prod(-1) * ((t * nat).sum(-1) - 2) / 8  # 1/8 (1+x a)(1+y b)(1+z c)(x a + y b + z c - 2)
+    mid = torch.where(nat == 0, 1 - t**2, f).prod(-1) / 4  # the zero coordinate carries 1 - t^2
+    is_corner = torch.zeros(20, dtype=torch.bool, device=xi.device)
+    is_corner[:8] = True
+    return torch.where(is_corner, corner, mid)
+
+
 def quad8_shape(st: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Serendipity Quad8 shape functions. st: (P, 2) -> N (P, 8), dN/dst (P, 8, 2)."""
     st = np.atleast_2d(st)

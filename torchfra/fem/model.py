@@ -180,6 +180,9 @@ class Model:
         fields = self.morph_fields()
         moving = np.abs(fields).max(axis=(1, 2)) > 0
         names = list(self._morphs)
+        for t in self.terms:
+            if t.global_dofs:  # no blocks to follow a morph: the term says what it allows
+                t.morphs_present(names)
         pinned = {"clamped": self.clamped_dofs // 3, "prescribed": np.asarray(sorted(self._prescribed), dtype=np.int64) // 3}
         for k, nodes in enumerate(self._rigid):
             pinned[f"rigid body {k}"] = nodes
@@ -212,7 +215,7 @@ class Model:
         self.dofmap = DofMap(self.n_nodes, clamped, presc, self._rigid, self._embedded, self.X, self.dtype)
         n = 3 * self.n_nodes
         self.pattern = SparsePattern(n, [t.dofs for t in self.terms])
-        self._dofs = [torch.as_tensor(t.dofs).ravel() for t in self.terms]
+        self._dofs = [torch.arange(n) if t.global_dofs else torch.as_tensor(t.dofs).ravel() for t in self.terms]
         self._free_nodes_check()
         return self
 
@@ -294,7 +297,7 @@ class Model:
         scale = torch.zeros(N, dtype=a.dtype)
         ok = torch.ones(N, dtype=torch.bool)
         W = torch.zeros(N, dtype=a.dtype) if energy else None
-        blocks = []
+        blocks, extra = [], []
         for t, dofs, loc in zip(self.terms, self._dofs, local):
             kw = {"local": loc} if t.n_local else {}
             out = t.evaluate(u, params, load_factor, tangent=tangent, energy=energy, **kw)
@@ -309,9 +312,11 @@ class Model:
                     raise ValueError(f"{type(t).__name__} is not conservative: the model has no total potential")
                 W += out.energy
             blocks.append(out.Ke)
+            if tangent and out.K_global is not None:
+                extra.append(out.K_global)
         r = self.dofmap.reduce(r_full, a)
         rhs = self.dofmap.reduce(rhs_full, a)
-        Ks = self._reduced_tangents(a, r_full, blocks) if tangent else None
+        Ks = self._reduced_tangents(a, r_full, blocks, extra) if tangent else None
         return Evaluation(r, scale, ok, W, Ks, rhs)
 
     def local_update(self, a, da, params, load_factor, local) -> list[torch.Tensor | None]:
@@ -336,13 +341,17 @@ class Model:
                 r.index_add_(1, dofs, t.evaluate(u, params, load_factor, tangent=False).fe.reshape(N, -1))
         return r.reshape(N, -1, 3)
 
-    def _reduced_tangents(self, a, r_full, blocks) -> list[sp.csr_matrix]:
+    def _reduced_tangents(self, a, r_full, blocks, extra=()) -> list[sp.csr_matrix]:
+        """``J^T K J`` (+ the constraints' geometric stiffness) per member; ``extra``: per global term, one
+        sparse full-dof tangent per member, added to the block assembly."""
         data = self.pattern.assemble(blocks).numpy()
         Js, JTs = self.dofmap.jacobian(a), self.dofmap.jacobian(a, transposed=True)
         geo = self.dofmap.geometric_stiffness(a, r_full)
         Ks = []
         for m in range(a.shape[0]):
             K = self.pattern.to_scipy(data[m])
+            for per_member in extra:
+                K = K + per_member[m]
             Kr = JTs[m] @ (K @ Js[m])
             if geo:
                 rows = np.concatenate([np.repeat(cols, 3) for cols, _ in geo])

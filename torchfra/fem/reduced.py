@@ -177,6 +177,14 @@ def _nnls(G: np.ndarray, b: np.ndarray, tol: float, max_blocks: int) -> np.ndarr
 SAMPLING_TOL = 1e-4
 
 
+def _reducible(model: Model) -> None:
+    """Refuse a model with a global term (its couplings are each member's own: no blocks to sample)."""
+    glob = [type(t).__name__ for t in model.terms if t.global_dofs]
+    if glob:
+        raise ValueError(f"the model's {', '.join(glob)} term couples each member's dofs its own way (no blocks to "
+                         "sample): it cannot be hyper-reduced; solve its members by full Newton (method='full')")
+
+
 class HyperReducedModel:
     """The reduced residual ``V^T r(V q)`` and tangent ``V^T K(V q) V`` of ``model`` from sampled,
     weighted blocks of every term (ECSW), trained on equilibrium ``states`` (M, n_red) with their
@@ -185,6 +193,7 @@ class HyperReducedModel:
     def __init__(self, model: Model, basis: ReducedBasis, states, params, load_factors,
                  sampling_tol: float = SAMPLING_TOL, max_blocks: int | None = None):
         self.model, self.basis = model.finalize(), basis
+        _reducible(model)
         dtype = model.dtype
         states = torch.as_tensor(states, dtype=dtype)
         params = {k: torch.as_tensor(v, dtype=dtype) for k, v in params.items()}
@@ -232,6 +241,7 @@ class HyperReducedModel:
         V = np.asarray(arrays["V"], dtype=np.float64)
         if V.ndim != 2 or V.shape[0] != model.n_red:
             raise ValueError(f"the saved reduced basis has shape {V.shape}; this model has {model.n_red} unknowns")
+        _reducible(model)
         self = cls.__new__(cls)
         self.model = model
         self.basis = ReducedBasis(torch.as_tensor(V), np.asarray(arrays["singular_values"]))

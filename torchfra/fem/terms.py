@@ -23,13 +23,18 @@ class TermOutput:
     and ``ok`` (N,): False where the member's state is inadmissible (e.g. det F <= 0).
 
     Terms with element-local unknowns (hybrid pressure) return ``Ke`` condensed and, when the
-    local unknowns are given, ``fe_condensed`` = the right-hand side that goes with it."""
+    local unknowns are given, ``fe_condensed`` = the right-hand side that goes with it.
+
+    A *global* term (``Term.global_dofs``: couplings that differ from member to member, e.g. fibers
+    embedded where each member's own geometry puts them) returns ``fe`` over every dof (N, 3 n_nodes),
+    ``Ke`` None and its tangents as one sparse matrix per member in ``K_global``."""
 
     fe: torch.Tensor
     Ke: torch.Tensor | None
     energy: torch.Tensor | None
     ok: torch.Tensor
     fe_condensed: torch.Tensor | None = None
+    K_global: list | None = None
 
 
 class Term:
@@ -42,6 +47,7 @@ class Term:
     kind: str = "internal"
     conservative: bool = True
     n_local: int = 0  # element-local unknowns per block carried by Newton (condensed per block)
+    global_dofs: bool = False  # True: no blocks; fe over every dof, tangents per member (TermOutput.K_global)
     param_names: tuple[str, ...] = ()
     dofs: np.ndarray  # (B, D) global dof indices
 
@@ -53,6 +59,11 @@ class Term:
             if not torch.isfinite(v).all():
                 m = int(torch.nonzero(~torch.isfinite(v))[0, 0])
                 raise ValueError(f"parameter {name} of member {m} is not finite ({float(v[m])})")
+
+    def morphs_present(self, names: list[str]) -> None:
+        """Called by :meth:`Model.finalize` on a global term of a model with morphs ``names``; a global
+        term has no blocks to follow them: refuse (the default) or check its members against them."""
+        raise ValueError(f"a {type(self).__name__} term does not follow the model's morphs {names}")
 
     def evaluate(
         self,

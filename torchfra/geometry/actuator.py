@@ -420,7 +420,7 @@ def cavity_offset_field(mesh: Mesh) -> np.ndarray:
 def build_actuator_model(geom: ActuatorGeometry | None = None, formulation: str = "hybrid",
                          elements_per_turn: int | None = None, integration: str = "full",
                          material=None, base: str = "clamp", gravity=None, fiber_modulus="E_fiber",
-                         cavity_offset: bool = False, fibers=None):
+                         cavity_offset: bool = False, fibers=None, fiber_pitch: bool = False):
     """The paper's actuator model (§2, §4): Neo-Hookean Hex20 body, embedded Line3 fibers, clamped
     base, rigid flat top, conservative pressure ``P`` in the closed cavity.
 
@@ -434,6 +434,10 @@ def build_actuator_model(geom: ActuatorGeometry | None = None, formulation: str 
     their own moduli, e.g. a debonded stretch), ``cavity_offset=True`` (a misplaced mould core:
     parameter ``delta_y``, mm, moves the cavity along y relative to the outer surfaces by a
     harmonic morph of the mesh, :data:`CAVITY_OFFSET`; the fibers follow the material they sit in).
+    ``fiber_pitch=True`` (fibers wound at another pitch than drawn: parameter ``fiber_pitch``, deg,
+    null ``geom.pitch_deg``; :class:`fem.FiberPitch` winds the same trusses at each member's pitch and
+    embeds them where they fall; not with given ``fibers`` or per-segment moduli; with
+    ``cavity_offset`` a member may move one of the two, not both).
     ``fibers``: ``(X (n, 3), conn (m, 3))`` Line3 fiber nodes and connectivity to embed in place of
     the geometry's helices (e.g. fiber paths measured on a specimen).
     ``integration="full"`` (3x3x3, the C3D20H analogue) by default: with the paper's reduced 2x2x2
@@ -473,6 +477,12 @@ def build_actuator_model(geom: ActuatorGeometry | None = None, formulation: str 
         model.add(fem.Gravity(mesh, direction=gravity))
     model.rigid("top")
     model.add(fem.CavityPressure(mesh, "cavity", pressure="P"))
+    if fiber_pitch:
+        if fibers is not None or callable(fiber_modulus):
+            raise ValueError("fiber_pitch winds the geometry's own helices at another pitch: it cannot be combined "
+                             "with given fibers or per-segment fiber moduli")
+        model.add(fem.FiberPitch(mesh, (0.0, geom.cavity_offset), geom.helix_radius, geom.cavity_z, geom.pitch_deg,
+                                 geom.helix_start_deg, conn.shape[0] // 2, geom.fiber_area, modulus=fiber_modulus))
     if cavity_offset:
         model.morph("delta_y", cavity_offset_field(mesh), CAVITY_OFFSET)
 
