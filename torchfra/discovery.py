@@ -925,7 +925,7 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
                 z0, scan_solves, scan = scan_start(phys, white, free, added, phys.null_point(c10), fit_frames,
                                                    progress=bar.tick)
             ext = gauss_newton(phys, white, free, z0, fit_frames, progress=bar.tick)
-            ext.solves += scan_solves
+            ext.solves = (ext.solves + scan_solves) * getattr(phys, "solves_per_observation", 1)  # secants solve twice more
             load_map = None
             if combo == ("viscoelasticity",) and fe_history:
                 # the load-level creep is the correspondence principle's approximation; the refit ends on
@@ -1014,7 +1014,8 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
             accepted = (combo, *fits[combo])
     bar.close()
     fit_after = accepted[2] if accepted else base_report
-    fe_solves = start_solves + base.solves + 1 + sum(t["fit"]["solves"] for t in tried) + rival_solves
+    ranking_solves = getattr(full, "solves_per_observation", 1)
+    fe_solves = start_solves + base.solves + ranking_solves + sum(t["fit"]["solves"] for t in tried) + rival_solves
     out = {
         "recording": rec.source,
         "frames": int(K), "points": int(rec.n_points), "observations": int(np.isfinite(rec.Z).sum()),
@@ -1042,7 +1043,7 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
         "fit_after": fit_after,
         "cost": {"solves": fe_solves, "seconds": time.perf_counter() - t_start,
                  "resolution": resolution if deck is None else None,
-                 "load_steps": load_steps, "ranking_solves": 1},
+                 "load_steps": load_steps, "ranking_solves": ranking_solves},
         "held_out_frames": [int(rec.frames[k]) for k in held],
     }
     if run_dir is not None:

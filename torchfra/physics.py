@@ -449,7 +449,7 @@ class ActuatorPhysics:
             raise ValueError(f"parameters {missing} have no value; the model's parameters are {self.names}")
         t0 = time.perf_counter()
         z = {n: float(z[n]) for n in self.names}
-        u, du_dlam, du, ok, its, reused = self._solve_nodal(z, values_only)
+        u, du_dlam, du, ok, its, reused = self._solve_nodal(z, values_only=True) if values_only else self._solve_nodal(z)
         K, P, d = self.rec.n_frames, self.W.shape[0], len(self.names)
         if not ok:
             return Evaluation(z, list(self.names), np.full((K, P, 2), np.nan), np.full((K, P, 2, d), np.nan), False,
@@ -476,6 +476,11 @@ class ActuatorPhysics:
             if name in self.names and not values_only:
                 J[..., self.names.index(name)] = self._secant(z, name, step, Y)
         return Evaluation(z, list(self.names), Y, J, True, its, time.perf_counter() - t0, reused)
+
+    @property
+    def solves_per_observation(self) -> int:
+        """FE solves an observation with sensitivities costs: one, and two more per secant parameter."""
+        return 1 + 2 * sum(1 for n in SECANT_STEPS if n in self.names)
 
     def _secant(self, z: dict[str, float], name: str, step: float, Y: np.ndarray) -> np.ndarray:
         """dY/dz[name] as the central secant over +-``step`` (one-sided at the admissible range's end or
