@@ -104,6 +104,25 @@ def test_residual_and_tangent_against_central_differences(models):
         assert np.abs(col - exact).max() < 1e-6 * np.abs(exact).max(), d
 
 
+def test_closed_forms_are_the_derived_ones(models):
+    """The hand-written residual and tangent (fem.Truss's closed forms through the embedding) against
+    torch.func's derivatives of the term's energy: the gradient, and the tangent along a random
+    direction as the forward derivative of the residual (1e-12 relative)."""
+    from torch.func import grad
+
+    _, _, _, pitched = models
+    term = pitch_term(pitched)
+    p = {"fiber_pitch": torch.tensor([2.6], dtype=torch.float64), "E_fiber": torch.tensor([31000.0], dtype=torch.float64)}
+    u = smooth_state(pitched)
+    out = term.evaluate(u, p, torch.ones(1), tangent=True)
+    g = grad(lambda uu: term.evaluate(uu, p, torch.ones(1), tangent=False, energy=True).energy.sum())(u)
+    assert float((g.reshape(1, -1) - out.fe).abs().max()) < 1e-12 * float(out.fe.abs().max())
+    v = torch.randn(u.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    _, dfe = jvp(lambda uu: term.evaluate(uu, p, torch.ones(1), tangent=False).fe, (u,), (v,))
+    Kv = out.K_global[0] @ v.reshape(-1).numpy()
+    assert np.abs(dfe[0].numpy() - Kv).max() < 1e-12 * np.abs(Kv).max()
+
+
 def test_the_pitch_derivative_of_the_residual_is_exact(models):
     """d(residual)/d(pitch) by torch.func.jvp (what the sensitivities use) against a central
     difference in the pitch (h = 1e-6 deg: fiber nodes cross brick faces, where the derivative has
