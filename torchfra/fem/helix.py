@@ -61,16 +61,22 @@ def _plain(t: torch.Tensor) -> bool:
     dual, no autograd history)."""
     import torch.autograd.forward_ad as fwAD
 
+    if t.requires_grad:
+        return False
     try:
-        t.detach().numpy() if t.requires_grad else t.numpy()
+        t.numpy()
     except RuntimeError:  # a torch.func-wrapped tensor has no storage of its own
         return False
-    return not t.requires_grad and fwAD.unpack_dual(t).tangent is None
+    return fwAD.unpack_dual(t).tangent is None
 
 
 class FiberPitch(Term):
     """Helical Line3 fibers at pitch ``params[name]`` (deg) in place of the model's ``nominal_deg``
-    (module docstring).
+    (module docstring). Energy of the fibers at pitch ``alpha``, as ``fem.Truss`` (T3D3, 2 Gauss points
+    per element, Green strain; E in MPa, A in mm^2, W in mJ):
+
+        W_alpha = sum_e sum_q w_q |X_s| (E A / 2) eps_q^2,   eps = (|x_s|^2 / |X_s|^2 - 1) / 2,
+        x_b = X_b(alpha) + sum_a N_a(xi_b(alpha)) u_a   (node b embedded in its host brick's nodes a).
 
     mesh: the Hex20 mesh the fibers are embedded in; ``center`` (x, y) of the helix axis (along z),
     ``radius``, ``z_range`` (z0, z1); ``start_deg``: both helices' angle at z0 about the axis from +x
@@ -216,14 +222,15 @@ class FiberPitch(Term):
         alpha, EA = params[self.name], params[self.modulus] * self.area
         nominal = torch.tensor(self.nominal, dtype=self.dtype)
         fes, Ks, Ws = [], [], []
-        at_null = _plain(alpha) and bool((alpha == self.nominal).all())
-        if at_null:  # both fields are the same numbers: the term is exactly zero (nothing to differentiate)
-            n = 3 * u.shape[1]
-            return TermOutput(torch.zeros(N, n, dtype=u.dtype, device=u.device), None,
-                              torch.zeros(N, dtype=u.dtype) if energy else None,
-                              torch.ones(N, dtype=torch.bool, device=u.device),
-                              K_global=[sp.csr_matrix((n, n)) for _ in range(N)] if tangent else None)
+        n = 3 * u.shape[1]
+        # at the drawn pitch both fields are the same numbers: exactly zero, skipped unless differentiated
+        null = (alpha == self.nominal).tolist() if _plain(alpha) else [False] * N
         for m in range(N):
+            if null[m]:
+                fes.append(torch.zeros(n, dtype=u.dtype, device=u.device))
+                Ks.append(sp.csr_matrix((n, n)) if tangent else None)
+                Ws.append(torch.zeros((), dtype=u.dtype) if energy else None)
+                continue
             fp, Kp, Wp = self._fibers(u[m], alpha[m], EA[m], tangent, energy)
             f0, K0, W0 = self._fibers(u[m], nominal, EA[m], tangent, energy)
             fes.append(fp - f0)
