@@ -55,7 +55,7 @@ import torch
 
 from . import fem
 from .fem.sensitivity import sensitivities
-from .fem.helix import pitch_parameter
+from .fem.candidates import fiber_pitch_parameter
 from .geometry.actuator import CAVITY_OFFSET, ActuatorGeometry, build_actuator_model
 from .history import G1, LAG, TAU1, creep_load, delayed_load, normalized_time
 from .observe import ObservationError, ObservationOperator, visible_faces
@@ -104,7 +104,7 @@ class Coordinate:
 
 
 C10_PRIOR_MEAN = 0.0068
-FIBER_PITCH = pitch_parameter(ActuatorGeometry().pitch_deg)
+FIBER_PITCH = fiber_pitch_parameter()
 COORDINATES = {
     c.name: c
     for c in (
@@ -134,9 +134,9 @@ CANDIDATE_PARAMETERS = {
 # parameters whose sensitivity is a central secant over this step (in the coordinate), not the exact
 # derivative: a pitch change slides the fiber nodes through the bricks (~100 mm per deg at the
 # helices' ends), so the discrete model's response carries a ripple whose exact slope dwarfs the
-# physical one (measured at resolution 1 on the proof suite's grid: |dY/d pitch| 696 exact at the
-# null against 1.4 as a secant over +-0.05 to +-0.2 deg, scripts/study_fiber_pitch.py); the secant
-# over half the prior's std sees the physics
+# physical one (on the proof suite's grid and ramp, results/study_fiber_pitch.json: |dY/d pitch| 1935
+# exact at the null against 3.8-4.3 as secants over +-0.05 to +-0.25 deg at resolution 1, 249 against
+# 2.0 at resolution 2); the secant over half the prior's std sees the physics
 SECANT_STEPS = {"fiber_pitch": 0.25}
 # parameters that only act through the frame-to-load map: no FE solve depends on them
 LOAD_MAP_ONLY = ("g1", "tau1", "pressure_lag")

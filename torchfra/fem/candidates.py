@@ -43,6 +43,13 @@ from .solid import Hex20Solid
 from .springs import ElasticSupport
 
 
+def fiber_pitch_parameter() -> ParameterInfo:
+    """The pitch candidate's registry entry, null at the actuator geometry's drawn pitch."""
+    from ..geometry.actuator import ActuatorGeometry
+
+    return pitch_parameter(ActuatorGeometry().pitch_deg)
+
+
 def _cavity_offset_parameter() -> ParameterInfo:
     from ..geometry.actuator import CAVITY_OFFSET
 
@@ -80,7 +87,7 @@ CANDIDATES = {
         Candidate("cavity_offset", "the cavity sits off its nominal axis along y (a misplaced mould core; a morph "
                   "of the reference mesh)", (_cavity_offset_parameter(),)),
         Candidate("fiber_pitch", "the fibers are wound at another pitch than drawn (each member's fibers embedded "
-                  "where they fall)", (pitch_parameter(2.0),)),
+                  "where they fall)", (fiber_pitch_parameter(),)),
     )
 }
 
