@@ -59,6 +59,9 @@ def main(argv=None) -> dict:
     p.add_argument("--newton-budget", type=int, default=d.newton_budget,
                    help="Newton iterations one member may spend (0: no limit); a member that spends them stops, "
                         "flagged as not converged")
+    p.add_argument("--newton-seconds", type=float, default=d.newton_seconds,
+                   help="wall seconds a full-Newton member may take (0: no limit); a member still solving then "
+                        "stops, flagged as not converged (machine-dependent; --newton-budget is not)")
     add_deck_flags(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar (helper processes)")
     a = p.parse_args(argv)
@@ -77,7 +80,7 @@ def main(argv=None) -> dict:
                            camera=a.camera, face=a.face or "",
                            threads=a.threads, integration=a.integration, method=a.method, snapshots=a.snapshots,
                            reduced_tol=a.reduced_tol, parameters=list(a.param), fixed=list(a.fixed),
-                           newton_budget=a.newton_budget)
+                           newton_budget=a.newton_budget, newton_seconds=a.newton_seconds)
     config = with_deck(config)  # a deck is read and checked before any work
     run_dir = Path(a.runs_dir) / a.out
     r = ranks()

@@ -140,3 +140,53 @@ def test_two_parameter_calibration_end_to_end(tmp_path):
     other = forward_dir(CalibrationConfig(**{**config.__dict__, "parameters": ["C10=lognormal:0.0061765,0.001123",
                                                                                "C01=uniform:0,0.002"]}), tmp_path)
     assert forward_dir(config, tmp_path).exists() and other != forward_dir(config, tmp_path)
+
+
+def test_a_ragged_recording_calibrates_like_the_same_observations_followed(tmp_path):
+    """A recording whose frames each observe their own points (ids renumbered per frame, a third of
+    the face's points each) is calibrated from per-frame slots: its forecasts equal the followed
+    recording's at the same points (1e-12 mm), its exact posterior equals the followed recording's
+    with every other entry masked (reference: the same grid quadrature over the same observations,
+    1e-9 relative), and every filter runs on it (the restart filter re-solving at each frame's own
+    points)."""
+    from torchfra.recordings import from_table, read_recording, to_table, write_recording
+
+    dense_dir = tmp_path / "dense"
+    dense = run_calibration(CONFIG, dense_dir, progress=False)
+    rec = read_recording(dense_dir / "recording.csv")
+    K, P = rec.n_frames, rec.n_points
+    rng = np.random.default_rng(3)
+    keep = np.zeros((K, P), dtype=bool)
+    for k in range(K):
+        keep[k, rng.choice(P, P // 3 - 3 * k, replace=False)] = True  # fewer in later frames: empty slots
+    t = to_table(rec)
+    rows = keep.reshape(-1)
+    ragged_t = {c: v[rows] for c, v in t.items()}
+    ragged_t["point_id"] = ragged_t["frame"] * 10**7 + ragged_t["point_id"]  # new ids in every frame
+    ragged = from_table(ragged_t)
+    assert ragged.ragged and ragged.Z.shape == (K, P // 3, 2) and (ragged.slots[1:, -1] == -1).all()
+    path = tmp_path / "ragged.csv"
+    write_recording(path, ragged)
+
+    config = CalibrationConfig(**{**CONFIG.__dict__, "recording": str(path), "coverage_seeds": 0})
+    out = run_calibration(config, tmp_path / "ragged", progress=False, runs_dir=tmp_path)
+    summary = write_calibration_outputs(out, tmp_path / "ragged", 0.0)
+    assert summary["recording_layout"].startswith("ragged") and summary["observations"] == int(keep.sum()) * 2
+    # each slot's forecast is the followed recording's at that point (slot j of frame k: point slots[k, j])
+    original = np.searchsorted(rec.point_ids, ragged.point_ids % 10**7)  # the point each new id stands for
+    for k in range(K):
+        ids = ragged.slots[k]
+        filled = ids >= 0
+        assert np.abs(out["Y_fe"][:, k, :-1][:, filled] - dense["Y_fe"][:, k, original[ids[filled]]]).max() < 1e-12
+        assert (out["Y_fe"][:, k, :-1][:, ~filled] == 0).all()
+    masked = np.where(np.repeat(keep[:, :, None], 2, axis=2), rec.Z, np.nan).reshape(K, -1)
+    ref = dense["sweep"].posterior(masked, CONFIG.noise ** 2)
+    got = out["filters"]["exact"]["posterior"]
+    assert abs(got.log_evidence - ref.log_evidence) < 1e-9 * abs(ref.log_evidence)
+    for key in ("mean", "std"):
+        assert got.stats()["C10"][key] == pytest.approx(ref.stats()["C10"][key], rel=1e-9)
+    assert summary["filters"]["restart"]["fe_solves"] == 4 * 2
+    # the restart filter's FE forecasts at the tracked slot against the map through the members, as above
+    assert out["restart_spline_check"]["max_forecast_error_tracked_mm"] < 0.05 * CONFIG.noise
+    for name, row in summary["filters"].items():
+        assert row["C10"]["std"] < summary["prior"]["C10"]["std"] and np.isfinite(row["log_evidence"]), name

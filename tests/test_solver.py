@@ -128,6 +128,23 @@ def test_a_member_stops_when_its_newton_budget_is_spent():
     assert (free.u[0] - sol.u[0]).abs().max() < 1e-10 * sol.u[0].abs().max()
 
 
+def test_a_member_stops_when_its_time_budget_is_spent():
+    """``member_seconds``: once the solve has taken that long, a member that has not reached its last
+    load factor stops at its next unconverged iteration, flagged 'diverged' at the load it reached
+    (NaN beyond it). A budget no member reaches changes nothing (bitwise); a vanishing one stops
+    every member short of the load (no timing in the assertion: the clock is past it at once)."""
+    mesh = box_mesh((2.0, 2.0, 6.0), (2, 2, 3))
+    params = {"C10": torch.tensor([0.05, 0.05]), "D1": torch.tensor([0.2, 0.2]), "P": torch.tensor([0.003, 0.5])}
+    opts = dict(min_increment=1e-4, max_iterations=10, member_budget=40)
+    free = fem.solve(_bending_model(mesh), params, [0.5, 1.0], fem.NewtonOptions(**opts))
+    ample = fem.solve(_bending_model(mesh), params, [0.5, 1.0], fem.NewtonOptions(**opts, member_seconds=1e9))
+    assert torch.equal(torch.nan_to_num(free.u), torch.nan_to_num(ample.u)) and free.status.tolist() == ample.status.tolist()
+    spent = fem.solve(_bending_model(mesh), params, [0.5, 1.0], fem.NewtonOptions(**opts, member_seconds=1e-12))
+    assert spent.status.tolist() == ["diverged", "diverged"]
+    assert (spent.load_reached < 0.5).all() and torch.isnan(spent.u[:, -1]).all()
+    assert (spent.iterations <= 2).all()
+
+
 def test_hybrid_newton_takes_a_full_load_step():
     """Near-incompressible bending (K/mu = 100) under a follower pressure with a rigid top, solved in
     ONE load increment: the element pressures are Newton unknowns (u-p Newton, as Abaqus hybrid

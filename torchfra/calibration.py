@@ -142,17 +142,61 @@ def validate_recording(config: CalibrationConfig) -> None:
     ActuatorSolver(config.resolution, rec, fwd_cfg)
 
 
-def forecast_at_frames(Y_steps: np.ndarray, steps: np.ndarray, lam: np.ndarray, W) -> np.ndarray:
+def forecast_at_frames(Y_steps: np.ndarray, steps: np.ndarray, lam: np.ndarray, W, slots=None) -> np.ndarray:
     """Y_steps (N, S, P_fwd, 2) at load factors ``steps`` (S,) -> (N, K, P_rec, 2) at the frames'
-    load factors ``lam`` (K,) and the recording's points (W: (P_rec, P_fwd) face interpolation)."""
+    load factors ``lam`` (K,) and the recording's points (W: (P_rec, P_fwd) face interpolation).
+
+    ``slots`` (K, J) (a ragged recording's layout, :func:`observation_layout`): frame k's entries
+    are the points ``slots[k]`` (-1: an empty slot, forecast 0) -> (N, K, J, 2), computed a block of
+    frames at a time, so memory follows the observations, not frames x points."""
     s = np.concatenate([[0.0], steps])
     Ys = np.concatenate([np.zeros_like(Y_steps[:, :1]), Y_steps], axis=1)
     i = np.clip(np.searchsorted(s, lam, side="right") - 1, 0, s.size - 2)
     w = ((lam - s[i]) / (s[i + 1] - s[i]))[None, :, None, None]
+    if slots is not None:
+        return _forecast_slots(Ys, i, w, W, slots)
     Yk = (1 - w) * Ys[:, i] + w * Ys[:, i + 1]  # (N, K, P_fwd, 2)
     N, K, P, C = Yk.shape
     flat = np.moveaxis(Yk, 2, 0).reshape(P, -1)
     return np.moveaxis((W @ flat).reshape(W.shape[0], N, K, C), 0, 2)
+
+
+def _forecast_slots(Ys, i, w, W, slots, block_bytes: float = 64e6) -> np.ndarray:
+    """:func:`forecast_at_frames` for a ragged layout: each slot's point from its few face nodes
+    (the rows of W, padded to the longest), a block of frames at a time."""
+    W = sp.csr_matrix(W)
+    nnz = np.diff(W.indptr)
+    T = max(int(nnz.max(initial=0)), 1)
+    cols, vals = np.zeros((W.shape[0], T), dtype=np.int64), np.zeros((W.shape[0], T))
+    filled = np.arange(T) < nnz[:, None]
+    cols[filled], vals[filled] = W.indices, W.data  # CSR order is row by row: the same as the mask's
+    N, P_fwd, C = Ys.shape[0], Ys.shape[2], Ys.shape[3]
+    K, J = slots.shape
+    out = np.zeros((N, K, J, C))
+    per_frame = 8.0 * N * C * (P_fwd + 2 * J * T)
+    step = max(1, int(block_bytes // per_frame))
+    for k0 in range(0, K, step):
+        k = np.arange(k0, min(K, k0 + step))
+        Yk = (1 - w[:, k]) * Ys[:, i[k]] + w[:, k] * Ys[:, i[k] + 1]  # (N, b, P_fwd, C)
+        ids = slots[k]
+        c = cols[np.maximum(ids, 0)]  # (b, J, T)
+        v = vals[np.maximum(ids, 0)] * (ids >= 0)[..., None]
+        g = Yk[:, np.arange(len(k))[:, None, None], c]  # (N, b, J, T, C)
+        out[:, k] = np.einsum("bjt,nbjtc->nbjc", v, g)
+    return out
+
+
+def observation_layout(rec: Recording, row: int):
+    """The observed entries the filters see, frame by frame: ``(slots, Z)``. A recording that follows
+    its points: ``slots`` None and Z its (K, P, 2). A ragged one: each frame's observed points in
+    its slots, and one more slot, never observed (NaN), for the tracked point ``row`` so the filters
+    forecast it in every frame for the figures without it weighing on any analysis."""
+    if not rec.ragged:
+        return None, rec.Z
+    K = rec.n_frames
+    slots = np.concatenate([rec.slots, np.full((K, 1), row, dtype=np.int64)], axis=1)
+    Z = np.concatenate([rec.Z, np.full((K, 1, 2), np.nan)], axis=1)
+    return slots, Z
 
 
 def point_map(rec_op: ObservationOperator, fwd_op: ObservationOperator) -> sp.csr_matrix:
@@ -262,9 +306,11 @@ class RestartForecaster:
     --workers``): every forecast's members are then shared out round robin over the ranks, each
     re-solves its share (:func:`serve_restart` on ranks 1..), and rank 0 gathers them."""
 
-    def __init__(self, solver: ActuatorSolver, lam: np.ndarray, N: int, frames=None, reduced=None, ranks=None):
+    def __init__(self, solver: ActuatorSolver, lam: np.ndarray, N: int, frames=None, reduced=None, ranks=None,
+                 slots=None):
         self.solver, self.lam = solver, lam
         self.frames = np.arange(len(lam)) if frames is None else np.asarray(frames)
+        self.slots = None if slots is None else torch.as_tensor(slots)  # (steps, J): a ragged recording's points
         self.reduced = reduced
         self.ranks = ranks
         pack = fem.newton._Packing(solver.model)
@@ -308,7 +354,11 @@ class RestartForecaster:
         self.newton_iterations += int(iterations)
         self.full_fallbacks += int(fallbacks)
         self.x, self.lam_now = x, np.full(N, target)
-        return s.operator(u[:, : s.mesh.n_nodes]).reshape(N, -1)
+        Y = s.operator(u[:, : s.mesh.n_nodes])  # (N, P, 2) at every point of the recording
+        if self.slots is not None:  # this frame's points only; an empty slot forecasts 0 (never observed)
+            ids = self.slots[k]
+            Y = Y[:, ids.clamp(min=0)] * (ids >= 0)[None, :, None]
+        return Y.reshape(N, -1)
 
 
 def restart_solve(solver: ActuatorSolver, reduced, params: dict, x: torch.Tensor, lam_now: torch.Tensor,
@@ -446,6 +496,8 @@ def recording_digest(rec: Recording) -> str:
     h = hashlib.sha256()
     for a in (rec.frames, rec.times, rec.pressure, rec.point_ids, rec.X, rec.Z):
         h.update(np.ascontiguousarray(a).tobytes())
+    if rec.ragged:
+        h.update(b"slots" + np.ascontiguousarray(rec.slots).tobytes())
     return h.hexdigest()
 
 
@@ -663,7 +715,7 @@ def _forward_reduction(solver: ActuatorSolver, fwd_dir):
         return HyperReducedModel.from_arrays(solver.model, {k: f[k] for k in f.files})
 
 
-def _restart(config, run_dir, rec, lam, Q0, Z, r, tracked, progress, fwd_dir=None, ranks=None):
+def _restart(config, run_dir, rec, lam, Q0, Z, r, tracked, progress, fwd_dir=None, ranks=None, slots=None):
     """Restart filter on every ``restart_every``-th frame, checkpointed after each step; its FE
     re-solves shared out over the ranks of ``ranks`` (a :class:`RestartRanks`) when given."""
     from .assimilation import FilterResult, sequential_filter
@@ -672,7 +724,7 @@ def _restart(config, run_dir, rec, lam, Q0, Z, r, tracked, progress, fwd_dir=Non
     ckpt = run_dir / "restart_checkpoint.pt"
     solver = ActuatorSolver(config.resolution, rec, forward_config(config))
     fc = RestartForecaster(solver, lam[idx], Q0.shape[0], rec.frames[idx], reduced=_forward_reduction(solver, fwd_dir),
-                           ranks=ranks)
+                           ranks=ranks, slots=None if slots is None else slots[idx])
     if ranks is not None and ranks.r.parallel:
         ranks.start(solver, fc.reduced, None if fwd_dir is None else Path(fwd_dir) / "reduced_model.npz",
                     list(solver.params_q(Q0[:1]).keys()))
@@ -734,23 +786,30 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, r
     rec_op = recording_operator(mesh, rec, faces=faces)
     W = point_map(rec_op, fwd["operator"])
     lam = load_factors(rec, fwd_cfg.pressure)
-    Y_fe = forecast_at_frames(fwd["Y_steps"][ok], fwd["load_factors"], lam, W)  # (N, K, P, 2)
+    # the paper's tracked node; on a deck's model the point the forward ensemble moves most
+    if not config.inp:
+        point = rec_op.nearest_point(0.0, 40.0)
+    elif rec.ragged:  # its frames see different points: the point that moves most at full load
+        final = (W @ np.moveaxis(fwd["Y_steps"][ok][:, -1], 1, 0).reshape(W.shape[1], -1)).reshape(W.shape[0], -1, 2)
+        point = int(np.argmax(np.linalg.norm(final, axis=-1).mean(axis=1)))
+    slots, Z_obs = observation_layout(rec, point if rec.ragged else -1)  # ragged: each frame's own points + tracked
+    Y_fe = forecast_at_frames(fwd["Y_steps"][ok], fwd["load_factors"], lam, W, slots)  # (N, K, P, 2)
     N, K, P, _ = Y_fe.shape
+    if config.inp and not rec.ragged:  # the point the ensemble moves most in the last frame
+        point = int(np.argmax(np.linalg.norm(Y_fe[:, -1], axis=-1).mean(axis=0)))
     Yt = torch.as_tensor(Y_fe.reshape(N, K, -1))
     # the members' coordinates (log C10 for the paper's prior); all of them for the restart filter
     Q0_all = (torch.log(fwd["params"]["C10"])[:, None] if not fwd_cfg.parameters
               else pset.coordinates({n: fwd["params"][n] for n in pset.names}))
     Q0 = Q0_all[torch.as_tensor(ok)]
-    Z = torch.as_tensor(rec.Z.reshape(K, -1))
+    Z = torch.as_tensor(Z_obs.reshape(K, -1))
     r = torch.full((Z.shape[1],), config.noise ** 2, dtype=torch.float64)
-    # the paper's tracked node; on a deck's model the point the forward ensemble moves most
-    row = (int(np.argmax(np.linalg.norm(Y_fe[:, -1], axis=-1).mean(axis=0))) if config.inp
-           else rec_op.nearest_point(0.0, 40.0))
+    row = point if slots is None else P - 1  # the tracked point's column in Y_fe and Z
     tracked = [2 * row, 2 * row + 1]
 
     out: dict = {"config": config, "forward": fwd, "recording": rec, "clean": clean, "truth": truth,
-                 "Y_fe": Y_fe, "Q0": Q0, "Q0_all": Q0_all, "parameter_set": pset, "tracked_row": row,
-                 "tracked_point": rec_op.points[row].tolist(), "filters": {}}
+                 "Y_fe": Y_fe, "observed": Z_obs, "Q0": Q0, "Q0_all": Q0_all, "parameter_set": pset,
+                 "tracked_row": row, "tracked_point": rec_op.points[point].tolist(), "filters": {}}
     if not 1 <= config.assimilate_every <= K:
         raise ValueError(f"assimilate_every must lie in [1, {K}] (the recording's frames), got {config.assimilate_every}")
     hier = np.arange(config.assimilate_every - 1, K, config.assimilate_every)  # the hierarchical filters' frames
@@ -762,11 +821,12 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, r
             out["slave_degree"], out["slave_loo_rms_mm"] = s.degree, s.loo_rms
     t0 = time.perf_counter()
     ref = ExactReference(pset, Q0, Y_fe.reshape(N, K, -1), config.grid)
-    exact = ref.posterior(rec.Z.reshape(K, -1), config.noise ** 2)
+    Zn = Z.numpy()
+    exact = ref.posterior(Zn, config.noise ** 2)
     out["filters"]["exact"] = {"posterior": exact, "frames": np.arange(K), "wall_s": time.perf_counter() - t0}
-    out["data_fit"] = ref.data_fit(exact, rec.Z.reshape(K, -1), config.noise ** 2)
+    out["data_fit"] = ref.data_fit(exact, Zn, config.noise ** 2)
     if hier.size != K:
-        out["exact_hierarchical_frames"] = ref.posterior(rec.Z.reshape(K, -1), config.noise ** 2, frames=hier)
+        out["exact_hierarchical_frames"] = ref.posterior(Zn, config.noise ** 2, frames=hier)
     out["sweep_loo_error"] = ref.loo_error
     out["sweep_loo_error_rms"] = ref.loo_error_rms
     out["sweep"] = ref
@@ -779,7 +839,7 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, r
         try:
             res, idx = _restart(config, run_dir, rec, lam, Q0_all, Z, r, tracked, progress,
                                 fwd_dir=forward_dir(config, run_dir.parent if runs_dir is None else runs_dir),
-                                ranks=restart_ranks)
+                                ranks=restart_ranks, slots=slots)
         finally:
             torch.set_num_threads(threads)
             if restart_ranks is not None:
@@ -787,7 +847,7 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, r
         if restart_ranks is not None and restart_ranks.r.parallel:
             out["restart_ranks"] = restart_ranks.r.size
         out["filters"]["restart"] = {"result": res, "frames": idx}
-        out["exact_restart_frames"] = ref.posterior(rec.Z.reshape(K, -1), config.noise ** 2, frames=idx)
+        out["exact_restart_frames"] = ref.posterior(Zn, config.noise ** 2, frames=idx)
         out["restart_spline_check"] = restart_spline_check(config, res, idx, ref, Q0_all, Z, r, tracked)
     # How far each hierarchical slave's forecast is from the FE map (the exact reference's map through
     # the FE members) at the ensemble it forecast for: the slave's linearization error along the way.
@@ -798,7 +858,7 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, r
             fe = ref.predict(res.Q[j].numpy())[:, k, :][:, tracked]  # (N, 2)
             err.append(np.sqrt(((res.Y_tracked[j].numpy() - fe) ** 2).mean(0)))
         out["filters"][name]["slave_error_tracked"] = np.asarray(err)  # (K, 2) RMS over members, mm
-    out["direct_fe_check"] = _direct_fe_check(config, run_dir, out, rec, lam, tracked, row)
+    out["direct_fe_check"] = _direct_fe_check(config, run_dir, out, rec, lam, tracked, point)
     if clean is not None and config.coverage_seeds > 0:
         restart = (Q0_all, out["filters"]["restart"]["frames"]) if config.restart else None
         out["coverage"] = coverage_study(config, Q0, Yt, ref, clean.reshape(K, -1), truth, out["slave_degree"], restart,

@@ -1125,6 +1125,7 @@ def _acceptance(fit: Fit, rep: dict, base_rep: dict, combo, threshold: float, al
 
 
 def _check_recording(rec: Recording, held_out_every: int) -> None:
+    rec.require_followed_points("the diagnosis (its residual maps, onset test and spatial clusters)")
     if rec.n_frames < 4:
         raise DiagnosisError(f"{rec.source}: {rec.n_frames} frames; a diagnosis needs at least 4 frames (some are "
                              "held out to check predictions, and the onset test needs a time series)")

@@ -61,6 +61,9 @@ class ForwardConfig:
     reduced_batch: int = 8
     newton_budget: int = 500  # Newton iterations one member may spend (a full-Newton member took 80-230
     # at resolution 1, the hopeless one included); a member that spends them stops, flagged
+    newton_seconds: float = 0.0  # wall seconds a full-Newton solve may take per member (0: no limit; a
+    # member at resolution 1 takes 7-20 s alone); one still solving then stops, flagged. Machine-dependent:
+    # a budget in iterations (newton_budget) gives the same answer everywhere
     # any parameter set (torchfra.priors): prior specs "NAME=KIND:A,B" and fixed "NAME=VALUE"; empty:
     # the paper's prior, C10 lognormal (c10_mean, c10_std) with E_fiber fixed
     parameters: list = field(default_factory=list)
@@ -511,6 +514,7 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
         chunk_params = {k: v[start:stop] for k, v in params.items()}
         t_chunk = time.perf_counter()
         sol = fem.solve(model, chunk_params, load, fem.NewtonOptions(**{"member_budget": config.newton_budget,
+                                                                       "member_seconds": config.newton_seconds,
                                                                        **config.newton}))
         u = sol.u[:, :, : mesh.n_nodes]
         states = {"states": sol.a.numpy()} if config.method == "reduced" else {}

@@ -9,6 +9,12 @@ in mm. An empty or NaN ``uy``/``uz`` is a missing observation; a point absent fr
 missing too. Missing values are masked (NaN in ``Recording.Z``), never zero-filled. The NPZ form holds
 the same names as arrays (1-D, or frames x points, see :mod:`torchfra.recording_files`).
 
+A recording that follows its points through the frames is stored frames x points. One whose
+points come and go (each frame sees at most half of all its points: a DIC export that renumbers
+its points per frame, a point per frame) is stored *ragged*: each frame's observed points packed
+into ``slots`` (frames x the most points one frame sees), so memory follows the observations
+present, not frames x points.
+
 Validation refuses, naming the culprit: an empty file, missing columns, a frame without a finite
 time or pressure or with two different times, duplicated ``(frame, point_id)`` rows, times that do
 not increase with the frame number, a point whose reference coordinates change between frames, and
@@ -29,7 +35,8 @@ import numpy as np
 
 COLUMNS = ("frame", "time", "pressure", "point_id", "X", "Y", "Z", "uy", "uz")
 # Limits on what a reader takes in (keyword arguments of read_recording raise them): a CSV line, data
-# rows (or NPZ array entries), frames x points of the dense (K, P, 2) array (320 MB of float64).
+# rows (or NPZ array entries), frames x points of the (K, P, 2) array (320 MB of float64; ragged:
+# frames x the fullest frame's points).
 MAX_LINE_BYTES = 1 << 20
 MAX_ROWS = 5_000_000
 MAX_FRAME_POINTS = 20_000_000
@@ -45,6 +52,9 @@ class Recording:
 
     frames (K,) int, times (K,), pressure (K,) MPa, point_ids (P,) int, X (P, 3) mm reference
     coordinates, Z (K, P, 2) observed (uy, uz) in mm with NaN where not observed.
+
+    Ragged (``slots`` given): Z (K, S, 2) holds frame k's observations in its S slots, slot j being
+    point ``slots[k, j]`` (an index into ``point_ids``; -1 and NaN in Z for an empty slot).
     """
 
     frames: np.ndarray
@@ -54,11 +64,26 @@ class Recording:
     X: np.ndarray
     Z: np.ndarray
     source: str = "<memory>"
+    slots: np.ndarray | None = None
+
+    @property
+    def ragged(self) -> bool:
+        """True when frames observe different points, stored per frame (``slots``)."""
+        return self.slots is not None
 
     @property
     def mask(self) -> np.ndarray:
-        """(K, P, 2) True where observed."""
+        """(K, P, 2) (ragged: (K, S, 2)) True where observed."""
         return np.isfinite(self.Z)
+
+    def require_followed_points(self, what: str) -> None:
+        """Refuse a ragged recording where ``what`` needs every point followed through the frames."""
+        if self.ragged:
+            raise RecordingError(
+                f"{self.source}: its frames observe different points ({self.n_points} points, at most "
+                f"{self.Z.shape[1]} in one frame); {what} follows each point through the frames. Register the DIC "
+                "export's points on its reference frame (scripts/import_dic.py) so each point keeps its id; "
+                "scripts/calibrate.py takes the recording as it is")
 
     @property
     def n_frames(self) -> int:
@@ -71,7 +96,8 @@ class Recording:
 
 def from_table(t: dict[str, np.ndarray], source: str = "<memory>", max_displacement: float = 1000.0,
                max_frame_points: int = MAX_FRAME_POINTS) -> Recording:
-    """Validate a long table (one entry per point per frame) and arrange it as frames x points."""
+    """Validate a long table (one entry per point per frame) and arrange it as frames x points (or
+    per frame when ragged, see the module's docstring)."""
     for c in COLUMNS:
         bad = np.flatnonzero(np.isinf(t[c]))
         if bad.size:
@@ -93,16 +119,15 @@ def from_table(t: dict[str, np.ndarray], source: str = "<memory>", max_displacem
     frames, fi = np.unique(frame, return_inverse=True)
     pids, pi = np.unique(pid, return_inverse=True)
     K, P = len(frames), len(pids)
-    if K * P > max_frame_points:
-        present = frame.size / (K * P)
-        ragged = (f" Only {frame.size} rows fill {100 * present:.2g} % of them: the point ids change from frame to frame "
-                  "(a DIC export renumbering its points per frame?); a recording follows the same points, by id, "
-                  "through every frame (torchfra.io.dic registers an export's points on its reference frame)."
-                  if present < 0.1 else "")
-        raise RecordingError(f"{source}: {K} frames x {P} points = {K * P} entries per displacement component, "
+    S = int(np.bincount(fi, minlength=K).max(initial=0))  # the most rows one frame has
+    ragged = 2 * S <= P  # every frame sees at most half the points: store per frame
+    if K * (S if ragged else P) > max_frame_points:
+        layout = (f"{K} frames x {S} observed points in the fullest frame" if ragged
+                  else f"{K} frames x {P} points")
+        raise RecordingError(f"{source}: {layout} = {K * (S if ragged else P)} entries per displacement component, "
                              f"more than the limit max_frame_points = {max_frame_points}; if the recording is "
-                             f"right, raise the limit with read_recording(..., max_frame_points=...).{ragged}")
-    key = fi * P + pi
+                             "right, raise the limit with read_recording(..., max_frame_points=...)")
+    key = fi.astype(np.int64) * P + pi
     uniq, counts = np.unique(key, return_counts=True)
     if np.any(counts > 1):
         j = int(np.argmax(counts > 1))
@@ -143,17 +168,29 @@ def from_table(t: dict[str, np.ndarray], source: str = "<memory>", max_displacem
     if bad.size:
         raise RecordingError(f"{source}: point {pids[bad[0]]} changes its reference coordinates between frames "
                              f"(by {spread[bad[0]]:.3g} mm); X, Y, Z are the reference position")
-    Z = np.full((K, P, 2), np.nan)
-    Z[fi, pi, 0], Z[fi, pi, 1] = t["uy"], t["uz"]
+    slots = None
+    if ragged:  # frame k's rows in slots 0, 1, ... in the order of their point ids
+        order = np.argsort(key, kind="stable")
+        start = np.concatenate([[0], np.cumsum(np.bincount(fi, minlength=K))])
+        slot = np.empty(frame.size, dtype=np.int64)
+        slot[order] = np.arange(frame.size) - start[fi[order]]
+        slots = np.full((K, S), -1, dtype=np.int64)
+        slots[fi, slot] = pi
+        Z = np.full((K, S, 2), np.nan)
+        Z[fi, slot, 0], Z[fi, slot, 1] = t["uy"], t["uz"]
+    else:
+        Z = np.full((K, P, 2), np.nan)
+        Z[fi, pi, 0], Z[fi, pi, 1] = t["uy"], t["uz"]
     if not np.isfinite(Z).any():
         raise RecordingError(f"{source}: no observed displacements: every uy and uz is empty or NaN, so there is "
                              "nothing to calibrate on")
     big = np.abs(np.nan_to_num(Z)) > max_displacement
     if big.any():
         k, p, c = np.argwhere(big)[0]
-        raise RecordingError(f"{source}: frame {frames[k]}, point {pids[p]}: u{'yz'[c]} = {Z[k, p, c]:g} mm is "
+        point = pids[slots[k, p] if ragged else p]
+        raise RecordingError(f"{source}: frame {frames[k]}, point {point}: u{'yz'[c]} = {Z[k, p, c]:g} mm is "
                              f"larger than {max_displacement:g} mm; check the units (mm expected)")
-    return Recording(frames, times, pressure, pids, X, Z, source)
+    return Recording(frames, times, pressure, pids, X, Z, source, slots)
 
 
 def read_recording(path, max_displacement: float = 1000.0, *, max_line_bytes: int = MAX_LINE_BYTES,
@@ -185,12 +222,17 @@ def read_recording(path, max_displacement: float = 1000.0, *, max_line_bytes: in
 
 
 def to_table(rec: Recording) -> dict[str, np.ndarray]:
-    K, P = rec.n_frames, rec.n_points
-    fi, pi = np.repeat(np.arange(K), P), np.tile(np.arange(P), K)
+    K, S = rec.Z.shape[:2]
+    fi, si = np.repeat(np.arange(K), S), np.tile(np.arange(S), K)
+    if rec.ragged:  # the filled slots only
+        pi = rec.slots[fi, si]
+        fi, si, pi = fi[pi >= 0], si[pi >= 0], pi[pi >= 0]
+    else:
+        pi = si
     return {
         "frame": rec.frames[fi], "time": rec.times[fi], "pressure": rec.pressure[fi], "point_id": rec.point_ids[pi],
         "X": rec.X[pi, 0], "Y": rec.X[pi, 1], "Z": rec.X[pi, 2],
-        "uy": rec.Z[fi, pi, 0], "uz": rec.Z[fi, pi, 1],
+        "uy": rec.Z[fi, si, 0], "uz": rec.Z[fi, si, 1],
     }
 
 

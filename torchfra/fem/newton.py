@@ -54,6 +54,9 @@ class NewtonOptions:
     # residual exceeds this (its next iterate will most likely need a step): one evaluation, not two
     member_budget: int = 0  # Newton iterations one member may spend in all (0: no limit); a member
     # that uses them up before the last load factor stops there, "diverged", and the others go on
+    member_seconds: float = 0.0  # wall seconds of this solve a member may take (0: no limit); the
+    # members of a batch advance together, so one still short of its last load factor after that long
+    # stops where it is, "diverged", at the next iteration it does not converge
     reuse_factorization: bool = True  # near convergence (last relative residual below tangent_hint),
     # a member steps with its factorization from earlier in the same increment instead of a new
     # tangent (modified Newton), while each such step cuts the residual by reuse_contraction; the
@@ -161,6 +164,7 @@ def solve(
     T, n = outs.size, model.n_red
     pack = _Packing(model)
     timings = {"residual": 0.0, "tangent": 0.0, "solve": 0.0}
+    t_start = time.perf_counter()
 
     x = torch.zeros(N, pack.size, dtype=dtype)
     x_conv, x_prev = x.clone(), x.clone()
@@ -309,7 +313,8 @@ def solve(
                 lam[m] = min(lam_conv[m] + dlam[m], outs[nxt[m]])
                 it[m] = 0
                 x[m] = predictor(m)
-            elif opt.member_budget and iterations[m] >= opt.member_budget:
+            elif ((opt.member_budget and iterations[m] >= opt.member_budget)
+                  or (opt.member_seconds and time.perf_counter() - t_start >= opt.member_seconds)):
                 status[m], active[m] = DIVERGED, False  # its budget is spent: the load it reached stands
             elif not ok[j] or it[m] >= opt.max_iterations:
                 cut(m)

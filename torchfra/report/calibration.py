@@ -115,6 +115,8 @@ def write_calibration_outputs(out: dict, run_dir, wall_s: float) -> dict:
         "frames": int(rec.n_frames),
         "observation_points": int(rec.n_points),
         "observations": int(np.isfinite(rec.Z).sum()),
+        "recording_layout": (f"ragged: frames observe different points, at most {rec.Z.shape[1]} each" if rec.ragged
+                             else "points followed through the frames"),
         "parameters": pset.names,
         "truth": out["truth"],
         "prior": prior_summary(out),
@@ -192,7 +194,7 @@ def bands_figure(out: dict) -> Figure:
             res = f["result"]
             Ytr = torch.stack(res.Y_tracked).numpy()[:, :, c]  # (steps, N)
             _band(ax, t[f["frames"]], Ytr, COLORS[name], LABELS[name] + " forecast")
-        ax.plot(t, rec.Z[:, row, c], ".", ms=3, color="0.4", label="observations")
+        ax.plot(t, out["observed"][:, row, c], ".", ms=3, color="0.4", label="observations")
         ax.set(xlabel="normalized time t", ylabel=f"u{'yz'[c]} of the tracked point (mm)")
         ax.grid(True, alpha=0.3)
     for j, (ax, name_p) in enumerate(zip(axes[2:], pset.names)):
