@@ -35,12 +35,14 @@ def snr_band(snr: float, kind: str) -> str:
     return next(label for lo, hi, label in BANDS if lo <= snr < hi)
 
 
-def cases(effects, seeds: int, correlations, quick: bool, sizes=None) -> list[dict]:
+def cases(effects, seeds: int, correlations, quick: bool, sizes=None, generator: str = "torchfra") -> list[dict]:
     """Every (effect, size, truth C10, trace, seed, noise correlation) to run, with a unique name."""
     out = []
     for effect in effects:
         e = scenarios.EFFECTS[effect]
-        if effect == "none":
+        if effect == "none" and generator != "torchfra":  # a CalculiX recording costs minutes: the effects' null
+            variants = [(0, 0.0062, "ramp")]
+        elif effect == "none":
             variants = [(0, c, "ramp") for c in NULL_C10] + [(0, 0.0062, "cycle")]  # the lag's trace too
         else:
             every = range(1, len(e.sizes) + 1)
@@ -50,7 +52,8 @@ def cases(effects, seeds: int, correlations, quick: bool, sizes=None) -> list[di
             for seed in range(seeds):
                 for ell in correlations:
                     name = (f"{effect}_s{size}" + (f"_c{c10:g}_{trace}" if effect == "none" else "")
-                            + f"_seed{seed}_" + (f"ell{ell:g}" if ell else "iid"))
+                            + f"_seed{seed}_" + (f"ell{ell:g}" if ell else "iid")
+                            + ("" if generator == "torchfra" else f"_{generator}"))
                     out.append(dict(case=name, effect=effect, size=size, truth_c10=c10, trace=trace, seed=seed,
                                     correlation=ell))
     return out
@@ -58,7 +61,8 @@ def cases(effects, seeds: int, correlations, quick: bool, sizes=None) -> list[di
 
 def run_case(case: dict, a, out: Path, diagnose) -> dict:
     gen = dict(noise=a.noise, seed=case["seed"], correlation=case["correlation"], truth_c10=case["truth_c10"],
-               trace=case["trace"], cache_dir=out / "clean")
+               trace=case["trace"], cache_dir=out / "clean", generator=a.generator, pressure=a.pressure)
+    gen.update(resolution=a.resolution)
     if a.quick:
         gen.update(resolution=1, frames=6)
     rec, clean, meta = scenarios.make_scenario(case["effect"], case["size"], **gen)
@@ -89,7 +93,8 @@ def run_case(case: dict, a, out: Path, diagnose) -> dict:
         "solves": len(list(cached.glob("solve_*.npz"))),  # FE solves of the diagnosis: one file each
         "seconds": float(d["cost"].get("seconds", seconds)),
         "solves_reused": before,  # solves found on disk from an earlier run: "seconds" then is not the cost
-        "generation": {"resolution": meta["generation"]["resolution"], "frames": meta["generation"]["frames"],
+        "generation": {"generator": a.generator, "pressure_max": a.pressure,
+                       "resolution": meta["generation"]["resolution"], "frames": meta["generation"]["frames"],
                        "solves": meta["solves"], "seconds": meta["seconds"]},
     }
 
@@ -199,12 +204,24 @@ def main(argv=None) -> dict:
                    help="smoke run: generation at resolution 1 with 6 frames, largest size only, one seed")
     p.add_argument("--verbose", action="store_true", help="show the diagnosis' own progress")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    p.add_argument("--generator", default="torchfra", choices=scenarios.GENERATORS,
+                   help="the code that makes the recordings: torchfra's own FE model at resolution 2, or CalculiX "
+                        "(ccx) on the deck torchfra writes (C3D20R bricks, fibers as SPRINGA springs; effects: "
+                        f"{', '.join(scenarios.CALCULIX_EFFECTS)})")
+    p.add_argument("--resolution", type=int, default=2, choices=(1, 2, 3),
+                   help="mesh resolution of the generating model (the diagnosis works at 1; 2 avoids the inverse "
+                        "crime of the same mesh)")
+    p.add_argument("--pressure", type=float, default=scenarios.PRESSURE_MAX,
+                   help="the largest recorded pressure (MPa); CalculiX's C3D20R stops near 0.013 at resolution 2")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     torch.set_default_dtype(torch.float64)
     effects = list(scenarios.EFFECTS) if a.effects == "all" else [e.strip() for e in a.effects.split(",") if e.strip()]
     for e in effects:
         scenarios.knob_value(e, 0)  # unknown names fail here, before any FE work
+        scenarios.check_generator(e, a.generator)
+    if not 0 < a.pressure <= scenarios.PRESSURE_MAX:
+        raise ValueError(f"--pressure must lie in (0, {scenarios.PRESSURE_MAX}] MPa, got {a.pressure}")
     if a.seeds < 1 or not a.noise > 0:
         raise ValueError(f"need --seeds >= 1 and --noise > 0, got {a.seeds} and {a.noise}")
     correlations = [float(x) for x in a.correlation.split(",")]
@@ -217,7 +234,10 @@ def main(argv=None) -> dict:
     results = out / "results.json"
     rows = {r["case"]: r for r in json.loads(results.read_text())["rows"]} if results.exists() else {}
     sizes = None if a.sizes == "all" else {int(x) for x in a.sizes.split(",")}
-    todo = cases(effects, 1 if a.quick else a.seeds, correlations, a.quick, sizes)
+    todo = cases(effects, 1 if a.quick else a.seeds, correlations, a.quick, sizes, a.generator)
+    for c in todo:
+        c["case"] += (f"_p{a.pressure:g}" if a.pressure != scenarios.PRESSURE_MAX else "") + \
+            (f"_res{a.resolution}" if a.resolution != 2 and not a.quick else "")
     if a.estimate_noise:
         for c in todo:
             c["case"] += "_estnoise"

@@ -132,25 +132,8 @@ def write_decks(run_dir: Path, geom, params, increments: int, hold: int, decks) 
     if "t3d2" in decks:
         paths["t3d2"] = write_inp(run_dir / DECKS["t3d2"], model, params, title=title, **options)
     if "springa" in decks:
-        truss = next(t for t in model.terms if isinstance(t, fem.Truss))
-        bare, _ = build(geom, *CASES["displacement_reduced_line3"])
-        bare.terms = [t for t in bare.terms if not isinstance(t, fem.Truss)]
-        path = write_inp(run_dir / DECKS["springa"], bare, params, title=title + ", fibers as SPRINGA", **options)
-        conn = truss.conn.numpy()
-        chords = np.concatenate([conn[:, [0, 2]], conn[:, [2, 1]]], axis=1).reshape(-1, 2)  # a-m, m-b per Line3
-        k = params["E_fiber"] * truss.area / np.linalg.norm(model.X[chords[:, 0]] - model.X[chords[:, 1]], axis=1)
-        lines = []
-        groups = {}
-        for e, kk in enumerate(k):  # one *SPRING per stiffness (the chords of equal-arc Line3s share one)
-            groups.setdefault(_num(float(f"{kk:.12e}")), []).append(e)
-        first = model.mesh.n_elements + 1
-        for g, (stiffness, members) in enumerate(sorted(groups.items())):
-            lines.append(f"*ELEMENT, TYPE=SPRINGA, ELSET=FIBER{g}")
-            lines += [f"{first + e}, {chords[e, 0] + 1}, {chords[e, 1] + 1}" for e in members]
-            lines += [f"*SPRING, ELSET=FIBER{g}", "", stiffness]
-        text = path.read_text().splitlines()
-        at = next(i for i, line in enumerate(text) if line.startswith("*STEP"))
-        path.write_text("\n".join(text[:at] + lines + text[at:]) + "\n")
+        path = write_inp(run_dir / DECKS["springa"], model, params, title=title + ", fibers as SPRINGA",
+                         **{**options, "truss_element": "SPRINGA"})
         paths["springa"] = path
     return paths, model, info
 

@@ -73,6 +73,17 @@ no reason to line up with the mesh), with noise i.i.d. N(0, sigma^2) or spatiall
 components). The noise-free observations are expensive (one FE solve through all frame pressures)
 and are cached as array-only ``.npz`` files keyed by everything that determines them; noise seeds
 are drawn on top, so more seeds cost no solve.
+
+``generator="calculix"`` makes the noise-free observations with another code altogether: the
+scenario's model is written as a CalculiX deck (``io.abaqus.write_inp``: C3D20R bricks, each fiber
+as two SPRINGA axial springs tied to its host bricks, the rigid top as ``*RIGID BODY``, the cavity
+pressure as ``*DLOAD`` through an ``*AMPLITUDE`` of the frames' true pressures, one increment per
+frame) and solved by ``ccx``; the diagnosis model (hybrid 3x3x3 bricks, curved Line3 fibers) then
+differs from the recording's in element formulation, integration and fiber element as well
+(+0.6 % at the tracked node on the same mesh, README "CalculiX, the actuator"). The decks stay in
+the cache folder. CalculiX has no hybrid brick and its C3D20R stops near 60 % of the paper's pressure
+on the resolution-2 mesh (a reduced-integration mode in the fiber-free ring by the cavity), so its
+scenarios run at lower pressures. Effects it can carry: ``CALCULIX_EFFECTS``.
 """
 from __future__ import annotations
 
@@ -80,6 +91,7 @@ import hashlib
 import json
 import math
 import os
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -103,6 +115,13 @@ DEBOND_MODULUS = 31.0  # MPa, what the debonded stretch still carries
 SENSOR_GAIN = 1.0  # pressure_sensor: true = SENSOR_GAIN * recorded + offset
 GRID_SHIFT = (0.382, 0.618)  # grid offset along (y, z) as fractions of its spacing
 CACHE_VERSION = 1  # bump when the way clean observations are made changes
+GENERATORS = ("torchfra", "calculix")
+# effects a CalculiX deck of write_inp carries (no history variables, morphs, renamed materials,
+# per-segment fiber moduli, or delayed pressures)
+CALCULIX_EFFECTS = ("none", "mooney_rivlin", "compressibility", "fiber_stiffness", "gravity", "compliant_base",
+                    "pressure_sensor")
+CALCULIX_TIMEOUT_S = 7200.0
+CALCULIX_DP = 4e-4  # MPa: the largest pressure change of one CalculiX increment
 
 
 @dataclass(frozen=True)
@@ -249,11 +268,12 @@ def model_parameters(effect: str, value: float, c10: float) -> dict[str, float]:
     return p
 
 
-def build_model(effect: str, value: float, resolution: int):
+def build_model(effect: str, value: float, resolution: int, **model_kw):
     """The actuator at ``resolution`` with ``effect`` switched on (the effect is not null); returns
-    ``(model, info)`` unfinalized, as ``build_actuator_model``."""
+    ``(model, info)`` unfinalized, as ``build_actuator_model`` (``model_kw``: its ``formulation`` and
+    ``integration``)."""
     geom = ActuatorGeometry(resolution=resolution)
-    kw = {}
+    kw = dict(model_kw)
     if effect == "mooney_rivlin":
         kw["material"] = fem.MooneyRivlin()
     elif effect == "gravity":
@@ -324,24 +344,68 @@ def dic_grid(mesh, spacing: float) -> np.ndarray:
 _ARRAYS = ("clean", "points", "times", "recorded", "true", "mesh")
 
 
-def _clean_key(effect, value, c10, resolution, spacing, frames, trace, pressure) -> dict:
+def _clean_key(effect, value, c10, resolution, spacing, frames, trace, pressure, generator="torchfra") -> dict:
     if value == EFFECTS[effect].null:  # an effect at its null is the base model: share its cache
         effect, value = "none", 0.0
     return {"effect": effect, "value": float(value), "c10": float(c10), "resolution": int(resolution),
             "spacing": float(spacing), "frames": int(frames), "trace": trace, "pressure": float(pressure),
             "grid_shift": list(GRID_SHIFT), "bulk_ratio": BULK_RATIO, "E_fiber": E_FIBER,
             "stagnation_tol": 1e-6, "version": CACHE_VERSION,
-            **({"history": "fe_prony", "tau1": VISCO_TAU1} if effect == "viscoelasticity" else {})}
+            **({"history": "fe_prony", "tau1": VISCO_TAU1} if effect == "viscoelasticity" else {}),
+            **({"generator": "calculix", "element": "C3D20R", "fibers": "SPRINGA"} if generator == "calculix" else {})}
+
+
+def check_generator(effect: str, generator: str) -> None:
+    """Refuse, by name, a generator that does not exist or cannot carry ``effect``."""
+    if generator not in GENERATORS:
+        raise ValueError(f"unknown generator {generator!r}; generators: {', '.join(GENERATORS)}")
+    if generator == "calculix" and effect not in CALCULIX_EFFECTS:
+        raise ValueError(f"effect {effect!r} has no CalculiX deck here (write_inp carries "
+                         f"{', '.join(CALCULIX_EFFECTS)}); generate it with torchfra")
+
+
+def _calculix_displacements(model, values: dict, lam: np.ndarray, n_nodes: int, deck_dir: Path, title: str
+                            ) -> np.ndarray:
+    """CalculiX's displacements (K, n_nodes, 3) of the deck of ``model`` at ``values`` (name -> number)
+    through the load factors ``lam`` (K,), one increment each, written and run in ``deck_dir``."""
+    from .io.abaqus import CalculixError, _dat_blocks, run_calculix, write_inp
+
+    deck_dir.mkdir(parents=True, exist_ok=True)
+    # increments of at most CALCULIX_DP MPa: its Newton on the rigid top's MPC and the follower
+    # pressure fails on larger ones (2-2.5 % of 0.022 MPa converged, README "CalculiX, the actuator")
+    steps = np.abs(np.diff(np.concatenate([[0.0], lam]))) * values["P"]
+    per_entry = max(1, int(math.ceil(steps.max() / CALCULIX_DP - 1e-9)))
+    deck = write_inp(deck_dir / "scenario.inp", model, values, element_type="C3D20R", truss_element="SPRINGA",
+                     load_factors=lam, increments_per_entry=per_entry, title=title)
+    try:
+        run_calculix(deck, threads=torch.get_num_threads(), timeout=CALCULIX_TIMEOUT_S)
+    except CalculixError as exc:
+        raise RuntimeError(f"CalculiX did not solve the scenario's deck {deck} ({str(exc).splitlines()[0]}); "
+                           "choose a lower pressure (its C3D20R bricks stop near 60 % of 0.022 MPa at "
+                           "resolution 2)") from exc
+    blocks = _dat_blocks(deck.with_suffix(".dat"))
+    times = np.array([t for t, _ in blocks])
+    K = lam.size
+    U = np.full((K, n_nodes, 3), np.nan)
+    for k in range(K):
+        j = int(np.argmin(np.abs(times - (k + 1) / K)))
+        if abs(times[j] - (k + 1) / K) > 1e-6:
+            raise RuntimeError(f"CalculiX printed no displacements at step time {(k + 1) / K:g} (frame {k}) of {deck}")
+        block = blocks[j][1]
+        U[k] = np.stack([block[i] for i in range(n_nodes)])
+    return U
 
 
 def clean_observations(effect: str, value: float, c10: float, resolution: int, spacing: float, frames: int,
                        trace: str, pressure: float = PRESSURE_MAX, cache_dir=None,
-                       progress: bool = False) -> tuple[dict[str, np.ndarray], int]:
+                       progress: bool = False, generator: str = "torchfra") -> tuple[dict[str, np.ndarray], int]:
     """Noise-free observations of the scenario and what made them: arrays ``clean`` (K, P, 2) mm,
     ``points`` (P, 3) mm, ``times``, ``recorded``, ``true`` (K,) MPa and ``mesh`` (elements, nodes,
     dofs of the generating model); returns ``(arrays, solves)`` with
-    ``solves`` the FE solves made (0 when read from ``cache_dir``)."""
-    key = _clean_key(effect, value, c10, resolution, spacing, frames, trace, pressure)
+    ``solves`` the FE solves made (0 when read from ``cache_dir``). ``generator``: ``"torchfra"`` or
+    ``"calculix"`` (see the module's docstring)."""
+    check_generator(effect, generator)
+    key = _clean_key(effect, value, c10, resolution, spacing, frames, trace, pressure, generator)
     text = json.dumps(key, sort_keys=True)
     path = None
     if cache_dir is not None:
@@ -355,8 +419,10 @@ def clean_observations(effect: str, value: float, c10: float, resolution: int, s
     p_true = true_pressure(effect, value, trace, times, pressure)
     if np.any(p_true < 0):
         raise ValueError(f"effect {effect!r} at {value:g} makes negative true pressures; choose a smaller size")
-    model, info = (build_actuator_model(ActuatorGeometry(resolution=resolution)) if effect == "none"
-                   else build_model(effect, value, resolution))
+    # CalculiX has no hybrid brick: its scenarios are C3D20R, displacement bricks with 2x2x2 points
+    model_kw = dict(formulation="displacement", integration="reduced") if generator == "calculix" else {}
+    model, info = (build_actuator_model(ActuatorGeometry(resolution=resolution), **model_kw) if effect == "none"
+                   else build_model(effect, value, resolution, **model_kw))
     mesh = info["mesh"]
     op = ObservationOperator(mesh, visible_faces(mesh, (1.0, 0.0, 0.0)), points=dic_grid(mesh, spacing))
     P_load = float(p_true.max())
@@ -374,6 +440,14 @@ def clean_observations(effect: str, value: float, c10: float, resolution: int, s
                                f"{resolution}, reached t = {hist.time_reached[0]:.3f} of the trace); choose a "
                                "smaller size")
         clean = op(hist.u[0, :, : mesh.n_nodes]).numpy()
+    elif generator == "calculix":
+        digest = hashlib.sha256(text.encode()).hexdigest()[:16]
+        deck_dir = (Path(cache_dir) if cache_dir is not None else Path(tempfile.mkdtemp())) / "calculix" / \
+            f"{key['effect']}_{digest}"
+        values = {k: float(v[0]) for k, v in params.items()}
+        U = _calculix_displacements(model, values, lam, mesh.n_nodes, deck_dir,
+                                    f"torchfra scenario {effect} = {value:g}, C10 = {c10:g} MPa, resolution {resolution}")
+        clean = op(torch.as_tensor(U)).numpy()
     else:
         distinct = np.unique(lam[lam > 0])
         sol = fem.solve(model, params, distinct, options, progress=progress)
@@ -431,14 +505,15 @@ DEFAULT_CACHE = Path("runs") / "scenarios" / "clean"
 def make_scenario(effect: str, size, truth_c10: float = 0.0062, noise: float = 1.0, seed: int = 0,
                   resolution: int = 2, spacing: float = 2.0, correlation: float = 0.0, frames: int = 20,
                   trace: str | None = None, pressure: float = PRESSURE_MAX, cache_dir=DEFAULT_CACHE,
-                  progress: bool = False) -> tuple[Recording, np.ndarray, dict]:
+                  progress: bool = False, generator: str = "torchfra") -> tuple[Recording, np.ndarray, dict]:
     """A recording of the actuator with ``effect`` at ``size`` (see ``knob_value``) concealed in it.
 
     truth_c10 (MPa), noise: sigma (mm), seed: of the noise, resolution: of the generating mesh,
     spacing: of the DIC grid (mm), correlation: length ell (mm) of the noise's correlation (0:
     i.i.d.), frames: K, trace: the recorded pressure trace, "ramp" or "cycle" (default: the effect's,
     a cycle for sensor_lag, else a ramp; see ``pressure_trace``), pressure: the largest recorded
-    pressure (MPa), cache_dir: where noise-free observations are kept (None: nowhere).
+    pressure (MPa), cache_dir: where noise-free observations are kept (None: nowhere), generator: the code that
+    solves the scenario, ``"torchfra"`` or ``"calculix"`` (see the module's docstring).
     Returns ``(recording, clean (K, P, 2), meta)``; ``meta`` holds the effect, its parameter values,
     the SNR measured against the base model at the same C10 and trace, the generation mesh, the
     trace, the noise model and the FE solves this call made.
@@ -452,8 +527,9 @@ def make_scenario(effect: str, size, truth_c10: float = 0.0062, noise: float = 1
     trace = e.trace if trace is None else trace
     _trace_shape(trace, 0.0)
     t0 = time.perf_counter()
+    check_generator(effect, generator)
     setting = dict(c10=truth_c10, resolution=resolution, spacing=spacing, frames=frames, trace=trace,
-                   pressure=pressure, cache_dir=cache_dir, progress=progress)
+                   pressure=pressure, cache_dir=cache_dir, progress=progress, generator=generator)
     arrays, solves = clean_observations(effect, value, **setting)
     if value == e.null:
         snr = 0.0
@@ -475,7 +551,8 @@ def make_scenario(effect: str, size, truth_c10: float = 0.0062, noise: float = 1
         "effect": effect, "kind": e.kind, "expected": e.expected, "size": size, "knob": e.parameter,
         "value": value, "unit": e.unit, "parameters": parameters, "truth_c10": truth_c10, "snr": snr,
         "snr_res1_table": dict(zip(range(1, len(e.snr) + 1), e.snr)),
-        "generation": {"resolution": resolution, "elements": int(arrays["mesh"][0]), "nodes": int(arrays["mesh"][1]),
+        "generation": {"generator": generator, "resolution": resolution, "elements": int(arrays["mesh"][0]),
+                       "nodes": int(arrays["mesh"][1]),
                        "dofs": int(arrays["mesh"][2]), "spacing_mm": spacing, "grid_shift": list(GRID_SHIFT),
                        "points": len(points), "frames": frames},
         "trace": {"kind": trace, "pressure_max": pressure, "times": arrays["times"].tolist(),

@@ -20,7 +20,9 @@ What each torchfra object becomes (ids are 1-based: node ``i`` -> ``i + 1``, mes
   MPCs. With T3D3 nodes that are dependent in an ``*EQUATION`` (embedded fibres) it stops
   ("no mean rotation MPC"). A truss node that is also clamped leaves a residual near 1e-4 of
   the average force, which never meets tight tolerances. Where it runs, trusses agree only to
-  the truss model (torchfra: Green strain; CalculiX: expanded beam).
+  the truss model (torchfra: Green strain; CalculiX: expanded beam). ``truss_element="SPRINGA"``
+  writes each Line3 as two axial springs of stiffness E A / L on its chords instead: ideal two-node
+  trusses, not expanded (25x faster on the actuator, and within 1.2e-5 of torchfra's chords).
 - ``FollowerPressure`` / ``CavityPressure`` -> ``*SURFACE, TYPE=ELEMENT`` (S1..S6 = face + 1)
   and ``*DLOAD`` lines ``element, P<face + 1>, P``. Abaqus ``P`` pushes on the face like
   torchfra's traction ``-P n`` and follows the face under NLGEOM. Pressures of several terms on
@@ -41,7 +43,8 @@ What each torchfra object becomes (ids are 1-based: node ``i`` -> ``i + 1``, mes
   the rotation node. CalculiX enforces the body with nonlinear MPCs and its own rotation
   unknowns. The constrained motion is the same, but the Newton iterations differ.
 
-The step is ``*STATIC, DIRECT`` with ``increments`` equal increments. There is no automatic
+The step is ``*STATIC, DIRECT`` with ``increments`` equal increments (or, with ``load_factors``, a
+load trace through an ``*AMPLITUDE``, ``increments_per_entry`` increments per entry). There is no automatic
 cutback, so a failing increment stops the run with an error instead of silently changing the path.
 ``*CONTROLS, PARAMETERS=FIELD`` tightens the residual and correction tolerances; CalculiX's
 defaults of 5e-3 and 1e-2 are far too loose for a cross-check. ``*NODE PRINT`` and ``*NODE FILE``
@@ -130,6 +133,8 @@ def write_inp(
     hold_increments: int = 10,
     truss_element: str = "T3D3",
     truss_poisson: float = 0.36,
+    load_factors=None,
+    increments_per_entry: int = 1,
 ) -> Path:
     """Write ``model`` for one parameter set as an Abaqus/CalculiX ``.inp`` deck; returns the path.
 
@@ -149,15 +154,22 @@ def write_inp(
     hold_increments: increments of the same size at the full load after the ramp (only when
         pressure loads are present; see the module docstring). The step then ends at time
         ``1 + hold_increments / increments``.
-    truss_element: ``"T3D3"`` (one per torchfra truss) or ``"T3D2"`` (two per truss, end-middle
-        and middle-end).
+    truss_element: ``"T3D3"`` (one per torchfra truss), ``"T3D2"`` (two per truss, end-middle
+        and middle-end) or ``"SPRINGA"`` (the same two as axial springs of stiffness E A / L: ideal
+        two-node trusses, which CalculiX does not expand into volume elements).
     truss_poisson: Poisson's ratio written for truss materials (a truss's axial force ignores it).
+    load_factors: a load trace instead of the ramp: one increment per entry, increment k ending at
+        step time (k + 1) / len(load_factors) with the loads at ``load_factors[k]`` of their value
+        (an ``*AMPLITUDE`` through them from 0 at time 0; loading and unloading alike, no hold), so
+        CalculiX prints the displacements at every entry. Overrides ``increments``.
+    increments_per_entry: with ``load_factors``, equal increments from one entry to the next (the
+        load follows the trace linearly in between); entry k ends increment (k + 1) x this.
 
     Raises NotImplementedError for terms or materials with no Abaqus counterpart here, KeyError /
     ValueError for missing or non-scalar parameters and bad options.
     """
-    if truss_element not in ("T3D3", "T3D2"):
-        raise ValueError(f"truss_element must be 'T3D3' or 'T3D2', got {truss_element!r}")
+    if truss_element not in ("T3D3", "T3D2", "SPRINGA"):
+        raise ValueError(f"truss_element must be 'T3D3', 'T3D2' or 'SPRINGA', got {truss_element!r}")
     if int(increments) < 1 or int(hold_increments) < 0:
         raise ValueError(f"need increments >= 1 and hold_increments >= 0, got {increments}, {hold_increments}")
     if not 0 < residual_tolerance < 1:
@@ -177,14 +189,23 @@ def write_inp(
         lines += [f"{e + 1}, S{f + 1}" for e, f in mesh.face_set(name)]
     lines += properties + _rigid_bodies(model) + _equations(model) + _clamps(model)
 
-    n_inc = int(increments)
+    trace = None if load_factors is None else np.asarray(load_factors, dtype=np.float64).reshape(-1)
+    if trace is not None and (trace.size == 0 or not np.all(np.isfinite(trace)) or np.abs(trace).max() > 1 + 1e-12):
+        raise ValueError("load_factors must be a non-empty sequence of finite load factors in [-1, 1]")
+    if int(increments_per_entry) < 1:
+        raise ValueError(f"increments_per_entry must be >= 1, got {increments_per_entry}")
+    n_inc = int(increments) if trace is None else trace.size * int(increments_per_entry)
     dt = 1.0 / n_inc
-    hold = int(hold_increments) if loads else 0
+    hold = int(hold_increments) if loads and trace is None else 0
     period = 1.0 + hold * dt
     amplitude = ""
     if hold:
         lines += ["*AMPLITUDE, NAME=RAMP_HOLD", f"0.0, 0.0, 1.0, 1.0, {_num(period)}, 1.0"]
         amplitude = ", AMPLITUDE=RAMP_HOLD"
+    if trace is not None:
+        points = [f"{_num(k / trace.size)}, {_num(v)}" for k, v in enumerate(np.concatenate([[0.0], trace]))]
+        lines += ["*AMPLITUDE, NAME=TRACE"] + [", ".join(points[i:i + 4]) for i in range(0, len(points), 4)]
+        amplitude = ", AMPLITUDE=TRACE"
     lines += [f"*STEP{', NLGEOM' if nlgeom else ''}, INC={10 * (n_inc + hold) + 100}", "*STATIC, DIRECT",
               f"{_num(dt)}, {_num(period)}"]
     # Iteration limits raised so that no divergence or logarithmic-rate check cuts a DIRECT increment.
@@ -258,6 +279,21 @@ def _elements(model, values, element_type, truss_element, truss_poisson, lines):
                 rho, g, d = gravity[k]
                 properties += ["*DENSITY", _num(rho)]
                 gravity_lines.append(f"SOLID{k}, GRAV, {_num(g)}, " + ", ".join(_num(v) for v in d))
+        elif isinstance(term, Truss) and truss_element == "SPRINGA":
+            # each Line3 (a, b, m) as the axial springs a-m and m-b of stiffness E A / L (L: the chord's
+            # reference length), one *SPRING per stiffness value
+            conn = term.conn.numpy()
+            chords = np.stack([conn[:, [0, 2]], conn[:, [2, 1]]], axis=1).reshape(-1, 2)
+            stiffness = values[term.modulus] * term.area / np.linalg.norm(model.X[chords[:, 0]] - model.X[chords[:, 1]], axis=1)
+            groups: dict[str, list] = {}
+            for e, kk in enumerate(stiffness):
+                groups.setdefault(_num(float(f"{kk:.12e}")), []).append(e)
+            for g, (kk, members) in enumerate(sorted(groups.items())):
+                lines.append(f"*ELEMENT, TYPE=SPRINGA, ELSET=TRUSS{k}_{g}")
+                for e in members:
+                    lines.append(f"{next_element}, {chords[e, 0] + 1}, {chords[e, 1] + 1}")
+                    next_element += 1
+                properties += [f"*SPRING, ELSET=TRUSS{k}_{g}", "", kk]
         elif isinstance(term, Truss):
             lines.append(f"*ELEMENT, TYPE={truss_element}, ELSET=TRUSS{k}")
             for a, b, m in (term.conn.numpy() + 1).tolist():
