@@ -130,6 +130,10 @@ def test_suite_driver_selects_cases_and_tabulates_by_the_snr_after_the_base_fit(
     names = [c["case"] for c in todo]
     assert len(todo) == (4 + 1) * 2 * 2 and len(set(names)) == len(names)
     assert {c["size"] for c in todo if c["effect"] == "gravity"} == {3}
+    # every case draws its own noise (the four null variants of a seed used to share one draw), the
+    # same case the same noise on every run
+    seeds = [suite.noise_seed(c) for c in todo]
+    assert len(set(seeds)) == len(todo) and seeds == [suite.noise_seed(dict(c)) for c in todo]
     row = dict(effect="gravity", kind="library", correct=True, decision="gravity", rms_before=1.3, rms_after=1.0,
                solves=12, snr=46.0)
     rows = [row | dict(snr_after_base=30.0, band=suite.snr_band(30.0, "library"), seconds=100.0, solves_reused=0),
