@@ -191,3 +191,18 @@ def test_calculix_recordings_of_the_actuator(cache, tmp_path):
             scenarios.make_scenario(effect, 1, generator="calculix", cache_dir=tmp_path)
     with pytest.raises(ValueError, match="unknown generator 'abaqus'"):
         scenarios.make_scenario("none", 0, generator="abaqus", cache_dir=tmp_path)
+
+
+def test_a_calculix_deck_that_does_not_solve_is_named(tmp_path, monkeypatch):
+    """A CalculiX run that stops early ends in a CalculixError (which the scripts print in one
+    paragraph) naming the deck and the way out, a lower pressure."""
+    from torchfra.io import abaqus
+
+    def stopped(*args, **kwargs):
+        raise abaqus.CalculixError("CalculiX stopped at time 0.4, before load factor 1\noutput tail")
+
+    monkeypatch.setattr(abaqus, "run_calculix", stopped)
+    model, _ = build_actuator_model(ActuatorGeometry(resolution=1), formulation="displacement", integration="reduced")
+    values = {"C10": 0.0062, "D1": 1.0 / 6.2, "E_fiber": 31000.0, "P": 0.01}
+    with pytest.raises(abaqus.CalculixError, match=r"scenario.inp \(CalculiX stopped at time 0.4.*lower --pressure"):
+        scenarios._calculix_displacements(model, values, np.array([0.5, 1.0]), 10, tmp_path, "deck")

@@ -379,10 +379,10 @@ def _calculix_displacements(model, values: dict, lam: np.ndarray, n_nodes: int, 
                      load_factors=lam, increments_per_entry=per_entry, title=title)
     try:
         run_calculix(deck, threads=torch.get_num_threads(), timeout=CALCULIX_TIMEOUT_S)
-    except CalculixError as exc:
-        raise RuntimeError(f"CalculiX did not solve the scenario's deck {deck} ({str(exc).splitlines()[0]}); "
-                           "choose a lower pressure (its C3D20R bricks stop near 60 % of 0.022 MPa at "
-                           "resolution 2)") from exc
+    except CalculixError as exc:  # a CalculixError (a RuntimeError): scripts end it in one paragraph
+        raise CalculixError(f"CalculiX did not solve the scenario's deck {deck} ({str(exc).splitlines()[0]}); "
+                            "choose a lower --pressure (its C3D20R bricks stop near 60 % of 0.022 MPa at "
+                            "resolution 2)") from exc
     blocks = _dat_blocks(deck.with_suffix(".dat"))
     times = np.array([t for t, _ in blocks])
     K = lam.size
@@ -390,7 +390,7 @@ def _calculix_displacements(model, values: dict, lam: np.ndarray, n_nodes: int, 
     for k in range(K):
         j = int(np.argmin(np.abs(times - (k + 1) / K)))
         if abs(times[j] - (k + 1) / K) > 1e-6:
-            raise RuntimeError(f"CalculiX printed no displacements at step time {(k + 1) / K:g} (frame {k}) of {deck}")
+            raise CalculixError(f"CalculiX printed no displacements at step time {(k + 1) / K:g} (frame {k}) of {deck}")
         block = blocks[j][1]
         U[k] = np.stack([block[i] for i in range(n_nodes)])
     return U
