@@ -25,7 +25,11 @@ The diagnosis of a recording (DESIGN §1.4):
    excess residual it can explain. A candidate whose sensitivities lie (almost) in the span of the
    base parameters' is reported ``confounded_with`` them (a pressure gain with C10: the scaling
    law); candidates whose projected sensitivities nearly coincide form a group. The smallest
-   effect each candidate could show at this noise (80 % power at the test level) is reported.
+   effect each candidate could show at this noise (80 % power at the test level) is reported. A
+   candidate whose effect changes its shape as it grows (a fiber compliance:
+   :data:`physics.FAR_SECANTS`) is tested along its derivative and the secant to a point two prior
+   standard deviations off its null together (two degrees of freedom): the derivative at a nearly
+   inextensible fiber carries a quarter of a compliant fiber's effect, the pair more than 98 %.
 4. **Refit and decide.** Every significant candidate (in order of their score statistic; at most
    ``max_refits`` when given) is added alone, and the best pair when none passes, and the extended parameters
    refitted by Gauss-Newton, started
@@ -36,7 +40,8 @@ The diagnosis of a recording (DESIGN §1.4):
    posterior standard deviations from its null and inside its range, the residual returns to the
    noise level (global test passes at ``alpha``, RMS within 10 % of the noise), the held-out
    frames are predicted better, and no other candidate's score test is still significant on the
-   extended model's residual (a surrogate explains only part of the mismatch). Of the extensions
+   extended model's residual (a surrogate explains only part of the mismatch; the test projects off
+   the extended model's sensitivities at its MAP, one-sided for a one-sided candidate). Of the extensions
    that pass, the one with the largest evidence is the decision; any other within
    ``evidence_threshold`` of it explains the recording about as well, and is named beside it
    (``"a|b"``: the data cannot tell them apart). Nothing passes: ``"unexplained"``, with where the
@@ -56,8 +61,8 @@ import numpy as np
 import torch
 from scipy import linalg, stats
 
-from .physics import (CANDIDATE_PARAMETERS, COORDINATES, HISTORY_DEPENDENT_CANDIDATES, LOAD_MAP_ONLY, NUISANCE,
-                      RIVALS, ActuatorPhysics, DeckModel, Evaluation, HistoryPhysics)
+from .physics import (CANDIDATE_PARAMETERS, COORDINATES, FAR_SECANTS, HISTORY_DEPENDENT_CANDIDATES, LOAD_MAP_ONLY,
+                      NUISANCE, RIVALS, ActuatorPhysics, DeckModel, Evaluation, HistoryPhysics)
 from .recordings import Recording, RecordingError
 
 ALL_CANDIDATES = tuple(sorted(set(CANDIDATE_PARAMETERS) - set(RIVALS.values())))
@@ -704,11 +709,16 @@ def history_identifiable(rec: Recording, hold_fraction: float = 0.1) -> bool:
 # -- rank -----------------------------------------------------------------------------------------------
 
 def rank(E: np.ndarray, J: np.ndarray, names: list[str], base: list[str], candidates, frames: np.ndarray,
-         alpha: float, power: float = 0.8, confound_tol: float = 0.1, group_tol: float = 0.95) -> list[dict]:
+         alpha: float, power: float = 0.8, confound_tol: float = 0.1, group_tol: float = 0.95,
+         secants: dict[str, str] | None = None) -> list[dict]:
     """Score tests of the candidates at the calibrated base point.
 
     E: whitened residuals (K, P, 2); J: whitened sensitivities (K, P, 2, d) for ``names`` (base
-    parameters first). Returns one row per candidate, most significant first."""
+    parameters first). ``secants``: {parameter: name of a column of J} holding the secant of a
+    parameter that switches on far from its null (:data:`physics.FAR_SECANTS`); its candidate is
+    tested along both its derivative and that secant (a row's ``tested_directions``). Returns one
+    row per candidate, most significant first."""
+    secants = secants or {}
     m = np.isfinite(E[frames])
     e = E[frames][m]
     Jm = J[frames][m]
@@ -722,8 +732,9 @@ def rank(E: np.ndarray, J: np.ndarray, names: list[str], base: list[str], candid
         # a nuisance parameter (tau1) has no effect at its candidate's null: the score test is the
         # one of the others at the nuisance's prior value (valid at any fixed value)
         names_c = [p for p in CANDIDATE_PARAMETERS[c] if p not in NUISANCE]
-        cols = [names.index(p) for p in names_c]
-        S = Jm[:, cols]
+        directions = [d for p in names_c for d in ([p, secants[p]] if p in secants else [p])]
+        owner = [p for p in names_c for _ in ([p, secants[p]] if p in secants else [p])]
+        S = Jm[:, [names.index(d) for d in directions]]
         U = S - Qb @ (Qb.T @ S)
         s_full = np.linalg.norm(S, axis=0)
         s_perp = np.linalg.norm(U, axis=0)
@@ -735,11 +746,14 @@ def rank(E: np.ndarray, J: np.ndarray, names: list[str], base: list[str], candid
         # its null (a fiber compliance, a finite bulk modulus) has a tiny sensitivity there, yet its
         # direction is what the score test needs. The smallest change detectable along it (80 %
         # power, one parameter, linearized) is reported beside.
+        # A secant's direction counts like a derivative's: a parameter is tested if either survives.
         nc1 = _noncentrality(stats.chi2.isf(alpha, 1), 1, power)
-        detectable = {pn: float(math.sqrt(nc1) / sp) for pn, sp, f in zip(names_c, s_perp, frac) if f > 1e-6}
+        detectable = {d: float(math.sqrt(nc1) / sp) for d, sp, f in zip(directions, s_perp, frac)
+                      if f > 1e-6 and d in names_c}
         keep = frac >= confound_tol
-        confounded = [pn for pn, f in zip(names_c, frac) if f < confound_tol]
-        untestable = [pn for pn, k in zip(names_c, keep) if not k]
+        tested = [pn for pn in names_c if any(k for o, k in zip(owner, keep) if o == pn)]
+        confounded = [pn for pn in names_c if pn not in tested]
+        untestable = confounded
         Uk = U[:, keep]
         one_sided = False
         if Uk.shape[1]:
@@ -749,7 +763,6 @@ def rank(E: np.ndarray, J: np.ndarray, names: list[str], base: list[str], candid
             qk = Uk.shape[1]
             p = float(stats.chi2.sf(lm, qk))
             bases[c] = Qu
-            tested = [pn for pn, k in zip(names_c, keep) if k]
             co = COORDINATES[tested[0]]
             if qk == 1 and co.transform == "linear" and co.null is not None and co.null == co.low:
                 # a null on the edge of the admissible range (a density, a relaxation fraction g1 >= 0):
@@ -764,10 +777,11 @@ def rank(E: np.ndarray, J: np.ndarray, names: list[str], base: list[str], candid
                      "explained_fraction": float(min(lm / excess, 1.0)) if lm > 0 else 0.0,
                      "confounded_with": (base if confounded else []),
                      "confounded_parameters": confounded, "untestable_parameters": untestable,
-                     "tested_parameters": [pn for pn, k in zip(names_c, keep) if k],
+                     "tested_parameters": tested,
+                     "tested_directions": [d for d, k in zip(directions, keep) if k],
                      "detectable_change": detectable,
-                     "projected_fraction": {pn: float(a / max(b, 1e-300)) for pn, a, b in
-                                            zip(names_c, s_perp, s_full)}})
+                     "projected_fraction": {d: float(a / max(b, 1e-300)) for d, a, b in
+                                            zip(directions, s_perp, s_full)}})
     # groups: candidates whose projected sensitivity spaces nearly coincide
     for r in rows:
         r["group"] = [r["name"]]
@@ -820,6 +834,44 @@ def _fit_report(fit: Fit, white: Whitener, frames_fit, frames_held, d: int) -> d
             "held_out_log_density": held_logpdf,
             "held_out_rms": float(np.sqrt(np.mean(held**2))) if held.size else None,
             "parameters": fit.summary(), "solves": fit.solves, "seconds": fit.seconds}
+
+
+def score_candidates(rec: Recording, white: Whitener, cands, c10: float, fit_frames: np.ndarray, alpha: float,
+                     resolution: int = 1, load_steps: int = 10, cache=None, deck: DeckModel | None = None, bar=None):
+    """Step 2 of the diagnosis: the model with every candidate of ``cands`` at its null, C10 =
+    ``c10``, observed with its exact sensitivities, plus one solve per parameter of
+    :data:`physics.FAR_SECANTS` for its secant; :func:`rank` on the recording's residual at ``alpha``.
+    Returns (physics, ranking, whitened sensitivities, their column names, FE solves)."""
+    bar = bar or _Progress(False)
+    full = ActuatorPhysics(rec, cands, resolution, load_steps, cache, deck=deck)
+    far = [p for p in FAR_SECANTS if p in full.names]
+    bar.phase("sensitivities of every candidate at the calibrated point"
+              + (f", secants of {', '.join(far)}" if far else ""), 1 + len(far))
+    z_null = full.null_point(c10)
+    ev_full = full.observe(z_null)
+    bar.tick(1)
+    if not ev_full.ok:
+        raise RecordingError(f"{rec.source}: the model with every candidate at its null did not converge at "
+                             f"C10 = {c10:.4g} MPa")
+    Ew = white(rec.Z - ev_full.Y)
+    Jw = white(ev_full.J)
+    names_w, secants, secant_points = list(full.names), {}, {}
+    for p in far:
+        co = full.coordinate(p)
+        z_far = dict(z_null) | {p: co.clip(z_null[p] + FAR_SECANTS[p] * co.prior_std)}
+        ev = full.observe(z_far)
+        bar.tick(1)
+        if not ev.ok:  # the model does not solve there: the candidate keeps its derivative's test alone
+            continue
+        col = f"{p}@{z_far[p]:.4g}"
+        Jw = np.concatenate([Jw, white((ev.Y - ev_full.Y) / (z_far[p] - z_null[p]))[..., None]], axis=-1)
+        names_w.append(col)
+        secants[p] = col
+        secant_points[p] = math.exp(z_far[p]) if co.transform == "log" else z_far[p]
+    ranking = rank(Ew, Jw, names_w, ["C10"], cands, fit_frames, alpha, secants=secants)
+    for r in ranking:
+        r["secant_points"] = {p: v for p, v in secant_points.items() if p in r["tested_parameters"]}
+    return full, ranking, Jw, names_w, getattr(full, "solves_per_observation", 1) * (1 + len(far))
 
 
 def diagnose(rec: Recording, noise: float | None = None, correlation: float | None = None, candidates="all",
@@ -889,16 +941,8 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
             not_testable[c] = ("the pressure only rises, without a hold: creep is a warp of the load axis there, "
                                "confounded with the material's nonlinearity; record unloading or a hold to test it")
         cands = tuple(c for c in cands if c not in not_testable)
-    bar.phase("sensitivities of every candidate at the calibrated point", 1)
-    full = ActuatorPhysics(rec, cands, resolution, load_steps, cache, deck=deck)
-    ev_full = full.observe(full.null_point(c10))
-    bar.tick(1)
-    if not ev_full.ok:
-        raise RecordingError(f"{rec.source}: the model with every candidate at its null did not converge at "
-                             f"C10 = {c10:.4g} MPa")
-    Ew = white(rec.Z - ev_full.Y)
-    Jw = white(ev_full.J)
-    ranking = rank(Ew, Jw, full.names, ["C10"], cands, fit_frames, alpha / 2)
+    full, ranking, Jw, names_w, ranking_solves = score_candidates(rec, white, cands, c10, fit_frames, alpha / 2,
+                                                                  resolution, load_steps, cache, deck, bar)
     where["detected_by_score"] = any(r["significant"] for r in ranking)
     where["detected"] = where["detected"] or where["detected_by_score"]
 
@@ -948,7 +992,9 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
             # extended model's residual (score tests linearized at the base point) says so
             others = [r for r in ranking if r["name"] not in combo and r["dof"] > 0
                       and not set(r["group"]) & set(combo)]
-            remaining = _remaining_scores(ext.residual, Jw, full.names, free, others, fit_frames)
+            ev_ext = ext.evaluation
+            J_fit = white(ev_ext.J[..., [ev_ext.names.index(n) for n in free]])
+            remaining = _remaining_scores(ext.residual, Jw, names_w, free, others, fit_frames, J_fit)
             level = ranking[0]["level"] if ranking else alpha / 2
             checks["no_other_candidate_significant"] = all(v["p_value"] >= level for v in remaining.values())
             rep["scan"] = scan
@@ -1014,7 +1060,6 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
             accepted = (combo, *fits[combo])
     bar.close()
     fit_after = accepted[2] if accepted else base_report
-    ranking_solves = getattr(full, "solves_per_observation", 1)
     fe_solves = start_solves + base.solves + ranking_solves + sum(t["fit"]["solves"] for t in tried) + rival_solves
     out = {
         "recording": rec.source,
@@ -1083,23 +1128,33 @@ def decide(tried: list[dict], ranking: list[dict], evidence_threshold: float) ->
 
 
 def _remaining_scores(E: np.ndarray, J: np.ndarray, names: list[str], fitted: list[str], rows: list[dict],
-                      frames: np.ndarray) -> dict:
-    """Score statistics of the candidates ``rows`` (their tested parameters) on the residual E of a fit
-    of ``fitted``, projected off the fitted parameters' sensitivities J (whitened, linearized at the
-    base point): {name: {"score", "dof", "p_value"}}."""
+                      frames: np.ndarray, J_fit: np.ndarray | None = None) -> dict:
+    """Score statistics of the candidates ``rows`` (their tested directions) on the residual E of a fit
+    of ``fitted``: {name: {"score", "dof", "p_value"}}. J: whitened sensitivities at the base point
+    (columns ``names``); the candidates' directions are projected off the fitted parameters'
+    sensitivities, taken from ``J_fit`` (whitened, (K, P, 2, len(fitted)), at the fit's MAP) when
+    given: a refit that moved a parameter far from its null (a fiber compliance) leaves a residual
+    orthogonal to its sensitivities there, not at the null. A one-sided candidate (``one_sided``: a
+    density, a relaxation fraction) counts only a pull into its range, as in :func:`rank`."""
     m = np.isfinite(E[frames]) & np.isfinite(J[frames][..., 0])
     e = E[frames][m]
     Jm = J[frames][m]
-    Qb, _ = np.linalg.qr(Jm[:, [names.index(n) for n in fitted]])
+    F = Jm[:, [names.index(n) for n in fitted]] if J_fit is None else J_fit[frames][m]
+    Qb, _ = np.linalg.qr(F)
     out = {}
     for r in rows:
-        cols = [names.index(p) for p in r["tested_parameters"] if p not in fitted]
+        # a secant's column is named "<parameter>@<coordinate>": fitted with its parameter
+        cols = [names.index(d) for d in r.get("tested_directions", r["tested_parameters"])
+                if d.split("@")[0] not in fitted]
         if not cols:
             continue
         U = Jm[:, cols] - Qb @ (Qb.T @ Jm[:, cols])
         Qu, _ = np.linalg.qr(U)
         lm = float(np.sum((Qu.T @ e) ** 2))
-        out[r["name"]] = {"score": lm, "dof": len(cols), "p_value": float(stats.chi2.sf(lm, len(cols)))}
+        p = float(stats.chi2.sf(lm, len(cols)))
+        if r.get("one_sided") and len(cols) == 1:
+            p = 0.5 * p if float(U[:, 0] @ e) > 0 else 1.0 - 0.5 * p
+        out[r["name"]] = {"score": lm, "dof": len(cols), "p_value": p}
     return out
 
 
