@@ -859,7 +859,7 @@ def score_candidates(rec: Recording, white: Whitener, cands, c10: float, fit_fra
     for p in far:
         co = full.coordinate(p)
         z_far = dict(z_null) | {p: co.clip(z_null[p] + FAR_SECANTS[p] * co.prior_std)}
-        ev = full.observe(z_far)
+        ev = full.observe(z_far, values_only=True)  # the secant needs the values alone: one solve
         bar.tick(1)
         if not ev.ok:  # the model does not solve there: the candidate keeps its derivative's test alone
             continue
@@ -871,7 +871,7 @@ def score_candidates(rec: Recording, white: Whitener, cands, c10: float, fit_fra
     ranking = rank(Ew, Jw, names_w, ["C10"], cands, fit_frames, alpha, secants=secants)
     for r in ranking:
         r["secant_points"] = {p: v for p, v in secant_points.items() if p in r["tested_parameters"]}
-    return full, ranking, Jw, names_w, getattr(full, "solves_per_observation", 1) * (1 + len(far))
+    return full, ranking, Jw, names_w, getattr(full, "solves_per_observation", 1) + len(far)
 
 
 def diagnose(rec: Recording, noise: float | None = None, correlation: float | None = None, candidates="all",
