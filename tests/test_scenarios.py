@@ -206,3 +206,25 @@ def test_a_calculix_deck_that_does_not_solve_is_named(tmp_path, monkeypatch):
     values = {"C10": 0.0062, "D1": 1.0 / 6.2, "E_fiber": 31000.0, "P": 0.01}
     with pytest.raises(abaqus.CalculixError, match=r"scenario.inp \(CalculiX stopped at time 0.4.*lower --pressure"):
         scenarios._calculix_displacements(model, values, np.array([0.5, 1.0]), 10, tmp_path, "deck")
+
+
+def test_a_calculix_scenario_without_a_cache_leaves_no_deck_behind(tmp_path, monkeypatch):
+    """Without a cache folder the deck is written to a temporary folder, removed once solved (a failed
+    run keeps it: its CalculixError names it). CalculiX itself is stubbed: this is about the files."""
+    made = []
+
+    def mkdtemp(prefix=""):
+        made.append(tmp_path / f"{prefix}{len(made)}")
+        made[-1].mkdir()
+        return str(made[-1])
+
+    def solved(model, values, lam, n_nodes, deck_dir, title):
+        deck_dir.mkdir(parents=True)
+        (deck_dir / "scenario.inp").write_text("*HEADING\n")
+        return np.zeros((lam.size, n_nodes, 3))
+
+    monkeypatch.setattr(scenarios.tempfile, "mkdtemp", mkdtemp)
+    monkeypatch.setattr(scenarios, "_calculix_displacements", solved)
+    arrays, _ = scenarios.clean_observations("none", 0.0, FAST["truth_c10"], 1, 2.0, FAST["frames"], "ramp",
+                                             pressure=0.003, generator="calculix")
+    assert made and not made[0].exists() and np.all(arrays["clean"] == 0.0)

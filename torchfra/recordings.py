@@ -128,11 +128,12 @@ def from_table(t: dict[str, np.ndarray], source: str = "<memory>", max_displacem
                              f"more than the limit max_frame_points = {max_frame_points}; if the recording is "
                              "right, raise the limit with read_recording(..., max_frame_points=...)")
     key = fi.astype(np.int64) * P + pi
-    uniq, counts = np.unique(key, return_counts=True)
-    if np.any(counts > 1):
-        j = int(np.argmax(counts > 1))
-        k = int(uniq[j])
-        raise RecordingError(f"{source}: point {pids[k % P]} appears {counts[j]} times in frame "
+    order = np.argsort(key, kind="stable")  # one sort serves the duplicate check and the ragged layout
+    sorted_key = key[order]
+    dup = np.flatnonzero(sorted_key[1:] == sorted_key[:-1])
+    if dup.size:
+        k = int(sorted_key[dup[0]])
+        raise RecordingError(f"{source}: point {pids[k % P]} appears {int(np.sum(sorted_key == k))} times in frame "
                              f"{frames[k // P]}; each (frame, point_id) must appear once")
     times, pressure = np.full(K, np.nan), np.full(K, np.nan)
     for name, out in (("time", times), ("pressure", pressure)):
@@ -170,7 +171,6 @@ def from_table(t: dict[str, np.ndarray], source: str = "<memory>", max_displacem
                              f"(by {spread[bad[0]]:.3g} mm); X, Y, Z are the reference position")
     slots = None
     if ragged:  # frame k's rows in slots 0, 1, ... in the order of their point ids
-        order = np.argsort(key, kind="stable")
         start = np.concatenate([[0], np.cumsum(np.bincount(fi, minlength=K))])
         slot = np.empty(frame.size, dtype=np.int64)
         slot[order] = np.arange(frame.size) - start[fi[order]]

@@ -91,6 +91,7 @@ import hashlib
 import json
 import math
 import os
+import shutil
 import tempfile
 import time
 from dataclasses import dataclass
@@ -442,11 +443,15 @@ def clean_observations(effect: str, value: float, c10: float, resolution: int, s
         clean = op(hist.u[0, :, : mesh.n_nodes]).numpy()
     elif generator == "calculix":
         digest = hashlib.sha256(text.encode()).hexdigest()[:16]
-        deck_dir = (Path(cache_dir) if cache_dir is not None else Path(tempfile.mkdtemp())) / "calculix" / \
-            f"{key['effect']}_{digest}"
+        # without a cache the deck goes to a temporary folder, removed once solved (kept when CalculiX
+        # fails: the error names it)
+        scratch = None if cache_dir is not None else Path(tempfile.mkdtemp(prefix="torchfra_calculix_"))
+        deck_dir = (Path(cache_dir) if scratch is None else scratch) / "calculix" / f"{key['effect']}_{digest}"
         values = {k: float(v[0]) for k, v in params.items()}
         U = _calculix_displacements(model, values, lam, mesh.n_nodes, deck_dir,
                                     f"torchfra scenario {effect} = {value:g}, C10 = {c10:g} MPa, resolution {resolution}")
+        if scratch is not None:
+            shutil.rmtree(scratch, ignore_errors=True)
         clean = op(torch.as_tensor(U)).numpy()
     else:
         distinct = np.unique(lam[lam > 0])
