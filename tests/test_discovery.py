@@ -497,3 +497,9 @@ def test_decision_names_every_extension_the_data_cannot_tell_apart():
     assert decide(t, ranking, 5.0)[0] == "fiber_stiffness|compressibility" and t[0]["rival"]
     assert decide(tried(("gravity", False, 9.0)), ranking, 5.0) == ("unexplained", None)
     assert decide(tried(("pressure_sensor", True, 9.0)), ranking, 5.0)[0] == "pressure_sensor|C10"
+    # a group at the null (a compliant fiber's secant spans a bulk's direction): a member that was
+    # refitted and failed was told apart by the data; one never refitted is named with the winner
+    ranking[1]["group"] = ["compressibility", "fiber_stiffness"]
+    t = tried(("fiber_stiffness", True, 52.0), ("compressibility", False, 30.0))
+    assert decide(t, ranking, 5.0)[0] == "fiber_stiffness"
+    assert decide(tried(("fiber_stiffness", True, 52.0)), ranking, 5.0)[0] == "compressibility|fiber_stiffness"

@@ -1110,8 +1110,9 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
 def decide(tried: list[dict], ranking: list[dict], evidence_threshold: float) -> tuple[str, dict | None]:
     """The decision from the refits ``tried`` (each with ``candidates``, ``accepted`` and
     ``fit["log_evidence"]``): "unexplained" when none was accepted; else the accepted one with the
-    largest evidence (a candidate confounded with another, e.g. the pressure sensor's group, by its
-    group's names), joined by "|" with every other accepted one within ``evidence_threshold`` of it:
+    largest evidence (a candidate confounded with another at the null, e.g. the pressure sensor's
+    group, by its group's names, less the members refitted themselves without passing within the
+    margin: the data told those apart), joined by "|" with every other accepted one within ``evidence_threshold`` of it:
     the data cannot tell those apart, so none of them is the winner alone. Marks the chosen entry
     ``chosen`` and the others named ``rival``; returns (decision, chosen entry or None)."""
     passed = [t for t in tried if t["accepted"]]
@@ -1121,7 +1122,13 @@ def decide(tried: list[dict], ranking: list[dict], evidence_threshold: float) ->
     best["chosen"] = True
     combo = best["candidates"]
     row = next(r for r in ranking if r["name"] == combo[0])
-    names = ["+".join(combo)] if len(row["group"]) == 1 or len(combo) > 1 else list(row["group"])
+    # the group is confounding at the null (linearized); a member refitted itself and not within the
+    # margin was told apart by the data (a compressible bulk beside a compliant fiber, whose secant
+    # spans the bulk's direction at the null), so only members never refitted (or a base parameter,
+    # C10 for a pressure gain) are named with the winner
+    refitted = {c for t in tried for c in t["candidates"]}
+    names = (["+".join(combo)] if len(row["group"]) == 1 or len(combo) > 1 else
+             [g for g in row["group"] if g == combo[0] or g not in refitted])
     for t in passed:
         if t is not best and best["fit"]["log_evidence"] - t["fit"]["log_evidence"] < evidence_threshold:
             t["rival"] = True
