@@ -503,3 +503,29 @@ def test_decision_names_every_extension_the_data_cannot_tell_apart():
     t = tried(("fiber_stiffness", True, 52.0), ("compressibility", False, 30.0))
     assert decide(t, ranking, 5.0)[0] == "fiber_stiffness"
     assert decide(tried(("fiber_stiffness", True, 52.0)), ranking, 5.0)[0] == "compressibility|fiber_stiffness"
+
+
+def test_a_secant_point_that_does_not_solve_leaves_the_derivatives_test(monkeypatch):
+    """A failed Newton solve at the fiber's secant point (E_fiber = 209 MPa) is not an error: the
+    candidate keeps the derivative's 1-dof test, no secant column is made, and the solve is counted."""
+    from torchfra.discovery import score_candidates
+    from torchfra.physics import ActuatorPhysics, Evaluation
+
+    times = np.arange(1, 5) / 4
+    rec, _ = synthetic_recording(0.006, resolution=1, points="4.0", noise=0.3, times=times, pressure=0.02 * times)
+    observe = ActuatorPhysics.observe
+
+    def failing(self, z, values_only=False):
+        if values_only:
+            K, P = rec.n_frames, self.W.shape[0]
+            return Evaluation(z, list(self.names), np.full((K, P, 2), np.nan), np.full((K, P, 2, len(self.names)), np.nan),
+                              False, 0, 0.0)
+        return observe(self, z)
+
+    monkeypatch.setattr(ActuatorPhysics, "observe", failing)
+    _, ranking, Jw, names, solves = score_candidates(rec, Whitener(rec, NoiseModel(0.3)), ("fiber_stiffness",), 0.006,
+                                                     np.arange(rec.n_frames), 0.01, load_steps=4)
+    row = ranking[0]
+    assert names == ["C10", "E_fiber"] and Jw.shape[-1] == 2 and solves == 2
+    assert row["dof"] <= 1 and row["tested_directions"] in ([], ["E_fiber"]) and row["secant_points"] == {}
+    assert all(np.isfinite(row[k]) for k in ("score", "p_value"))

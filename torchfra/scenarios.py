@@ -408,9 +408,10 @@ def clean_observations(effect: str, value: float, c10: float, resolution: int, s
     check_generator(effect, generator)
     key = _clean_key(effect, value, c10, resolution, spacing, frames, trace, pressure, generator)
     text = json.dumps(key, sort_keys=True)
+    digest = hashlib.sha256(text.encode()).hexdigest()[:16]
     path = None
     if cache_dir is not None:
-        path = Path(cache_dir) / f"{key['effect']}_{hashlib.sha256(text.encode()).hexdigest()[:16]}.npz"
+        path = Path(cache_dir) / f"{key['effect']}_{digest}.npz"
         if path.exists():
             with np.load(path, allow_pickle=False) as f:
                 if str(f["key"]) == text:
@@ -442,7 +443,6 @@ def clean_observations(effect: str, value: float, c10: float, resolution: int, s
                                "smaller size")
         clean = op(hist.u[0, :, : mesh.n_nodes]).numpy()
     elif generator == "calculix":
-        digest = hashlib.sha256(text.encode()).hexdigest()[:16]
         # without a cache the deck goes to a temporary folder, removed once solved (kept when CalculiX
         # fails: the error names it)
         scratch = None if cache_dir is not None else Path(tempfile.mkdtemp(prefix="torchfra_calculix_"))
