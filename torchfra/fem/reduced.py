@@ -273,8 +273,13 @@ class HyperReducedModel:
             Wb = W[:, dofs]  # (N, B, D, k)
             R += torch.einsum("nbd,nbdk->nk", fe, Wb)
             if tangent and out.Ke is not None:
-                KW = torch.matmul(out.Ke * xi[None, :, None, None], Wb)  # (N, B, D, k)
-                K += torch.einsum("nbdk,nbdl->nkl", Wb, KW)
+                # projected in single precision: the reduced tangent only steers Newton (the answer is
+                # the float64 residual's root, checked by a float64 full Newton step); measured on the
+                # actuator at resolution 1, 8 members: the sampled phase 10 % faster, iteration counts
+                # and check estimates unchanged to the digits that matter
+                W32 = Wb.float()
+                KW = torch.matmul((out.Ke * xi[None, :, None, None]).float(), W32)  # (N, B, D, k)
+                K += torch.einsum("nbdk,nbdl->nkl", W32, KW).double()
         if tangent:
             for cols, H in model.dofmap.geometric_stiffness(a, r_full):
                 Vc = V[torch.as_tensor(cols)]
@@ -415,7 +420,6 @@ def solve_reduced(hyper: HyperReducedModel, params: dict, load_factors, xtol: fl
                             continue
                         if step[j] < (xtol if phase == "sampled" else polish_tol):
                             active[m] = False
-                        # modified Newton: keep the tangent while it contracts fast enough
                         # sampled phase: Newton; polish: keep the tangent while it contracts fast enough
                         need_tangent[m] = phase == "sampled" or step[j] > refresh * last_step[m]
                         last_step[m] = step[j]

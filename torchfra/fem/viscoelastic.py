@@ -49,7 +49,7 @@ from .kinematics import cofactor, deformation_gradient
 from .materials import NeoHookean
 from .model import Model
 from .newton import CONVERGED, DIVERGED, NewtonOptions, WarmStart, _Packing, solve
-from .solid import Hex20Solid, _material_tangent, _nodal_gradients
+from .solid import Hex20Solid, _material_tangent, _nodal_forces
 from .terms import Term, TermOutput
 
 HISTORY_ROW = "history_row"  # bookkeeping parameter: each member's row in the history store
@@ -200,7 +200,7 @@ class ViscousOverstress(Term):
                                                 {"C10": kC, "D1": torch.ones_like(kC)}, with_energy=energy,
                                                 tangent=tangent)
         P = iso.P + F @ H
-        fe = torch.einsum("eg,negp->nep", w, _nodal_gradients(dN, P))
+        fe = _nodal_forces(dN, w, P)
         psi = None
         if energy:
             E_gl = 0.5 * (F.transpose(-1, -2) @ F - torch.eye(3, dtype=F.dtype))
