@@ -354,7 +354,6 @@ def solve_reduced(hyper: HyperReducedModel, params: dict, load_factors, xtol: fl
     arrays: a checkpoint); ``resume=state`` continues from it exactly as the solve would have gone
     on (same members, load factors and basis)."""
     model, V = hyper.model, hyper.basis.V
-    galerkin = hyper.galerkin()
     dtype = model.dtype
     params = {k: torch.as_tensor(v, dtype=dtype).reshape(-1) for k, v in params.items()}
     N = model.validate(params)
@@ -415,7 +414,7 @@ def solve_reduced(hyper: HyperReducedModel, params: dict, load_factors, xtol: fl
                         # Galerkin tangent, both from the element arrays of every block
                         # (hyper.galerkin: half the time of assembling K and forming V^T K V)
                         if with_tangent:
-                            R, K_last[idx], ok = galerkin.evaluate(q[idx], sub, lam_t, tangent=True)
+                            R, K_last[idx], ok = hyper.galerkin().evaluate(q[idx], sub, lam_t, tangent=True)
                             have_tangent[idx] = True
                             full_tangents[idx] += 1
                         else:
