@@ -42,7 +42,7 @@ from torchfra.geometry.actuator import ActuatorGeometry, build_actuator_model
 from torchfra.report.tensorboard import open_writer
 
 
-def sampled_root(hyper, q0, params, lam, tol=1e-9, iterations=40):
+def sampled_root(hyper, q0, params, lam, where: str, tol=1e-9, iterations=40):
     """Root of the hyper-reduced residual by Newton from q0 (its own, sampled tangent)."""
     V, q = hyper.basis.V, q0.clone()
     for _ in range(iterations):
@@ -51,7 +51,7 @@ def sampled_root(hyper, q0, params, lam, tol=1e-9, iterations=40):
         q = q + dq
         if float((dq @ V.T).abs().max()) < tol:
             return q
-    raise RuntimeError(f"the sampled residual's Newton did not converge in {iterations} iterations")
+    raise RuntimeError(f"{where}: the sampled residual's Newton did not converge in {iterations} iterations")
 
 
 def main(argv=None) -> dict:
@@ -64,6 +64,12 @@ def main(argv=None) -> dict:
     ap.add_argument("--out", default="results/study_reduced_conditioning.json")
     ap.add_argument("--name", default="study_reduced_conditioning", help="TensorBoard run under runs/")
     args = ap.parse_args(argv)
+    if args.members < 1:
+        ap.error(f"--members {args.members}: study at least one member")
+    if args.ensemble < 7:
+        ap.error(f"--ensemble {args.ensemble}: the snapshots take 5 members; choose at least 7 so that some are left")
+    if args.threads < 1:
+        ap.error(f"--threads {args.threads}: at least 1")
     torch.set_num_threads(args.threads)
     t_start = time.perf_counter()
 
@@ -100,7 +106,7 @@ def main(argv=None) -> dict:
             phi = vec[:, order[0]]
             mode = model.displacement((phi @ V.T)[None], lam_t)[0]
             node = int(mode.norm(dim=1).argmax())
-            q_s = sampled_root(hyper, q_g, sub, lam_t)
+            q_s = sampled_root(hyper, q_g, sub, lam_t, f"member {m}, load factor {lam:.3f}")
             dq = q_s - q_g
             along = float(((dq @ phi) * phi @ V.T).abs().max())
             row = {
