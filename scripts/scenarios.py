@@ -10,6 +10,10 @@ writes <out>/: results.json (one row per case), table.md (per effect and SNR ban
 rate, false attributions on nulls, "unexplained" rate, RMS before/after in noise units, FE solves,
 wall time; bands by the SNR left after the base model's C10 refit), summary.json, and the diagnosis' own folders under diag/<case>/. Noise-free observations
 are cached under <out>/clean/. Rerunning resumes: cases with a result row are not redone.
+
+    python scripts/scenarios.py --pool results/proof_suite_*.json --out runs/pooled   # no FE work
+
+pools the rows of earlier runs into one table with exact 95 % bounds and the issue's targets.
 """
 import argparse
 import hashlib
@@ -91,7 +95,7 @@ def run_case(case: dict, a, out: Path, diagnose) -> dict:
         unabsorbed = f["before"] - (rec.Z - clean)
     snr_after_base = float(np.sqrt(np.nansum(unabsorbed**2))) / a.noise
     return {
-        "case": case["case"], "effect": case["effect"], "kind": meta["kind"], "size": case["size"],
+        "case": case["case"], "effect": case["effect"], "kind": meta["kind"], "size": case["size"], "noise": a.noise,
         "value": meta["value"], "truth_c10": case["truth_c10"], "trace": meta["trace"]["kind"],
         "snr": meta["snr"], "snr_after_base": snr_after_base, "band": snr_band(snr_after_base, meta["kind"]),
         "band_raw": snr_band(meta["snr"], meta["kind"]), "seed": case["seed"], "noise_seed": noise_seed(case),
@@ -139,6 +143,137 @@ def table(rows: list[dict]) -> str:
                      f"{named / n:.0%} | {unexplained / n:.0%} | {_mean(g, 'rms_before')} | {_mean(g, 'rms_after')} | "
                      f"{_mean(g, 'solves')} | {_mean([r for r in g if not r.get('solves_reused')], 'seconds')} |")
     return "\n".join(lines) + "\n"
+
+
+POOL_FIELDS = ("case", "effect", "kind", "noise", "snr", "snr_after_base", "decision", "rms_before", "rms_after",
+               "solves")
+POOL_ALPHA = 0.05  # one-sided exact (Clopper-Pearson) bounds at 95 % confidence
+
+
+def rate_bound(k: int, n: int, side: str, alpha: float = POOL_ALPHA) -> float:
+    """Exact one-sided (Clopper-Pearson) confidence bound of a rate seen k times in n: the lower
+    bound (``side="lower"``) is the Beta(k, n - k + 1) quantile alpha, the upper the Beta(k + 1,
+    n - k) quantile 1 - alpha (k = n gives alpha^(1/n), k = 0 gives 1 - alpha^(1/n))."""
+    from scipy.stats import beta
+
+    if not 0 <= k <= n or n < 1:
+        raise ValueError(f"a rate needs 0 <= k <= n and n >= 1, got k = {k}, n = {n}")
+    if side == "lower":
+        return 0.0 if k == 0 else float(beta.ppf(alpha, k, n - k + 1))
+    return 1.0 if k == n else float(beta.ppf(1.0 - alpha, k + 1, n - k))
+
+
+def recording_key(row: dict) -> tuple:
+    """What makes a recording: its case name (effect, size, truth, trace, seed index, noise kind,
+    generator), its noise level and its noise draw (a null's name and draw recur at another noise)."""
+    generator = (row.get("generation") or {}).get("generator", "torchfra")
+    return (row["case"], float(row["noise"]), row.get("noise_seed", row.get("seed")), generator)
+
+
+def read_rows(path: Path) -> list[dict]:
+    """The rows of a suite's results file (``results.json`` of a run, or a copy kept in results/);
+    JSON only. A file that is not one, or a row without what the table needs, is named."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except ValueError as err:
+        raise ValueError(f"{path}: not JSON ({err}); --pool takes the results.json files of suite runs") from err
+    rows = data.get("rows") if isinstance(data, dict) else None
+    if not isinstance(rows, list) or not rows:
+        raise ValueError(f"{path}: no 'rows' list of cases; --pool takes the results.json files of suite runs")
+    for i, row in enumerate(rows):
+        missing = [f for f in POOL_FIELDS if not isinstance(row, dict) or f not in row]
+        if missing:
+            name = row.get("case", f"row {i}") if isinstance(row, dict) else f"row {i}"
+            raise ValueError(f"{path}: case {name!r} lacks {', '.join(missing)} (a row of an older suite version?); "
+                             "leave the file out of --pool")
+    return rows
+
+
+def pooled(paths) -> tuple[str, dict]:
+    """One table over the rows of several suite runs: per effect and SNR band (after the base fit),
+    the correct rate with its exact one-sided 95 % bound, and the issue's targets judged on the
+    pooled counts. A recording listed in several files counts once, from the last file listing it
+    (a re-decision on the same solves replaces the first)."""
+    rows: dict[tuple, dict] = {}
+    sources: dict[tuple, str] = {}
+    listed = 0
+    for path in paths:
+        for row in read_rows(path):
+            listed += 1
+            key = recording_key(row)
+            rows[key], sources[key] = row, str(path)
+    groups: dict[tuple, list] = {}
+    for r in rows.values():
+        band = snr_band(float(r["snr_after_base"]), r["kind"])
+        groups.setdefault((r["effect"], r["kind"], band), []).append(r)
+    order = {e: k for k, e in enumerate(scenarios.EFFECTS)}
+    bands = {label: k for k, (_, _, label) in enumerate(BANDS)}
+    head = ("| effect | kind | SNR band (after base fit) | recordings | SNR after base fit | correct | "
+            "exact 95 % bound of the correct rate | named a candidate | unexplained | RMS before | RMS after | "
+            "FE solves |")
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for (effect, kind, band), g in sorted(groups.items(), key=lambda x: (order.get(x[0][0], len(order)),
+                                                                          bands.get(x[0][2], -1))):
+        n, k = len(g), sum(scenarios.is_correct(r["effect"], str(r["decision"])) for r in g)
+        named = sum(str(r["decision"]) not in ("none", "unexplained") for r in g)
+        unexplained = sum(str(r["decision"]) == "unexplained" for r in g)
+        snr = [float(r["snr_after_base"]) for r in g]
+        lines.append(f"| {effect} | {kind} | {band} | {n} | {min(snr):.3g}-{max(snr):.3g} | {k} of {n} | "
+                     f">= {rate_bound(k, n, 'lower'):.0%} | {named} | {unexplained} | {_mean(g, 'rms_before')} | "
+                     f"{_mean(g, 'rms_after')} | {_mean(g, 'solves')} |")
+
+    def count(select, good):
+        g = [r for r in rows.values() if select(r)]
+        return sum(bool(good(r)) for r in g), len(g)
+
+    def correct(r):
+        return scenarios.is_correct(r["effect"], str(r["decision"]))
+
+    def strong(r):
+        return float(r["snr_after_base"]) >= 25.0
+
+    targets = {}
+    for name, select, good, side, target in (
+            ("top-1 correct, library effects, SNR >= 25 after the base fit",
+             lambda r: r["kind"] == "library" and strong(r), correct, "lower", 0.95),
+            ("attributed to a candidate, nulls", lambda r: r["kind"] == "null",
+             lambda r: str(r["decision"]) not in ("none", "unexplained"), "upper", 0.05),
+            ("\"unexplained\", effects outside the library, SNR >= 25 after the base fit",
+             lambda r: r["kind"] == "outside" and strong(r), lambda r: str(r["decision"]) == "unexplained", "lower",
+             0.80),
+            ("\"unexplained\", effects outside the library, every SNR", lambda r: r["kind"] == "outside",
+             lambda r: str(r["decision"]) == "unexplained", "lower", 0.80),
+            ("residual within 10 % of the noise after the refit, library effects named right",
+             lambda r: r["kind"] == "library" and correct(r), lambda r: float(r["rms_after"]) <= 1.10, "lower",
+             1.0)):
+        k, n = count(select, good)
+        if not n:
+            targets[name] = {"k": 0, "n": 0, "rate": None, "bound": None, "target": target, "met": None}
+            continue
+        bound = rate_bound(k, n, side)
+        if target >= 1.0:  # "every one": no bound to judge
+            verdict = "yes" if k == n else "no"
+        elif (bound <= target) if side == "upper" else (bound >= target):
+            verdict = "yes"
+        elif (k / n <= target) if side == "upper" else (k / n >= target):
+            verdict = "not shown: too few recordings for the bound"
+        else:
+            verdict = "no: the rate seen misses it"
+        targets[name] = {"k": k, "n": n, "rate": k / n, "bound": bound, "side": side, "target": target,
+                         "met": verdict}
+    lines += ["", "| target | seen | exact 95 % bound | issue's target | met at 95 % confidence |",
+              "|---|---|---|---|---|"]
+    for name, t in targets.items():
+        if not t["n"]:
+            lines.append(f"| {name} | no recording | - | {t['target']:.0%} | - |")
+            continue
+        sign = ">=" if t["side"] == "lower" else "<="
+        want = f"{'<=' if t['side'] == 'upper' else '>='} {t['target']:.0%}" if t["target"] < 1.0 else "every one"
+        lines.append(f"| {name} | {t['k']} of {t['n']} | {sign} {t['bound']:.1%} | {want} | {t['met']} |")
+    summary = {"files": [str(p) for p in paths], "rows_listed": listed, "recordings": len(rows),
+               "duplicates_dropped": listed - len(rows), "targets": targets,
+               "confidence": f"exact one-sided (Clopper-Pearson), alpha = {POOL_ALPHA}"}
+    return "\n".join(lines) + "\n", summary
 
 
 def _write_json(path: Path, obj) -> None:
@@ -224,7 +359,21 @@ def main(argv=None) -> dict:
                         "crime of the same mesh)")
     p.add_argument("--pressure", type=float, default=scenarios.PRESSURE_MAX,
                    help="the largest recorded pressure (MPa); CalculiX's C3D20R stops near 0.013 at resolution 2")
+    p.add_argument("--pool", nargs="+", default=None, metavar="RESULTS.json",
+                   help="no FE work: pool the rows of earlier runs' results.json files (a recording listed twice "
+                        "counts once, from the last file) into one table with exact 95 %% bounds of every rate and "
+                        "the issue's targets judged on them; writes <out>/pooled.md and pooled.json")
     a = p.parse_args(argv)
+    if a.pool:
+        text, summary = pooled([Path(f) for f in a.pool])
+        out = Path(a.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "pooled.md").write_text(text)
+        _write_json(out / "pooled.json", summary)
+        print(text + f"{summary['recordings']} recordings from {len(a.pool)} files"
+              + (f" ({summary['duplicates_dropped']} listed twice, counted once)" if summary["duplicates_dropped"]
+                 else "") + f"; written to {out / 'pooled.md'}")
+        return summary
     torch.set_num_threads(a.threads)
     torch.set_default_dtype(torch.float64)
     effects = list(scenarios.EFFECTS) if a.effects == "all" else [e.strip() for e in a.effects.split(",") if e.strip()]

@@ -228,3 +228,54 @@ def test_a_calculix_scenario_without_a_cache_leaves_no_deck_behind(tmp_path, mon
     arrays, _ = scenarios.clean_observations("none", 0.0, FAST["truth_c10"], 1, 2.0, FAST["frames"], "ramp",
                                              pressure=0.003, generator="calculix")
     assert made and not made[0].exists() and np.all(arrays["clean"] == 0.0)
+
+
+def test_pooled_table_counts_each_recording_once_and_bounds_every_rate_exactly(tmp_path):
+    """scripts/scenarios.py --pool: rows of several runs in one table; a recording listed in two
+    files counts once, from the later; the bounds are exact one-sided Clopper-Pearson (closed forms:
+    n of n gives a lower bound alpha^(1/n), 0 of n an upper bound 1 - alpha^(1/n); and
+    scipy.stats.binomtest's interval in between); a file that is no suite's results is named."""
+    import json
+
+    from scipy.stats import binomtest
+
+    from helpers import load_script
+
+    suite = load_script("scenarios")
+    assert suite.rate_bound(6, 6, "lower") == pytest.approx(0.05 ** (1 / 6), rel=1e-9)  # 60.7 %
+    assert suite.rate_bound(0, 60, "upper") == pytest.approx(1 - 0.05 ** (1 / 60), rel=1e-9)  # 4.9 %
+    ci = binomtest(7, 9).proportion_ci(confidence_level=0.90, method="exact")  # two-sided 90 % = one-sided 95 %
+    assert suite.rate_bound(7, 9, "lower") == pytest.approx(ci.low, rel=1e-9)
+    assert suite.rate_bound(7, 9, "upper") == pytest.approx(ci.high, rel=1e-9)
+
+    def row(case, effect, kind, decision, snr_after, noise=0.25, seed=1):
+        return dict(case=case, effect=effect, kind=kind, noise=noise, noise_seed=seed, snr=3 * snr_after,
+                    snr_after_base=snr_after, decision=decision, rms_before=1.05, rms_after=1.0, solves=10)
+
+    first = [row("fiber_stiffness_s2_seed0_iid", "fiber_stiffness", "library", "none", 30.0),
+             row("none_s0_c0.0062_ramp_seed0_iid", "none", "null", "none", 2.0),
+             row("none_s0_c0.0062_ramp_seed0_iid", "none", "null", "gravity", 2.0, noise=1.0),
+             row("fiber_debond_s3_seed0_iid", "fiber_debond", "outside", "unexplained", 40.0)]
+    # the same fiber recording re-decided: replaces the first row, not a second recording
+    second = [row("fiber_stiffness_s2_seed0_iid", "fiber_stiffness", "library", "fiber_stiffness", 30.0),
+              row("gravity_s3_seed0_iid", "gravity", "library", "gravity", 45.0)]
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    a.write_text(json.dumps({"rows": first}))
+    b.write_text(json.dumps({"rows": second}))
+    text, summary = suite.pooled([a, b])
+    assert summary["recordings"] == 5 and summary["duplicates_dropped"] == 1
+    t = summary["targets"]
+    top1 = t["top-1 correct, library effects, SNR >= 25 after the base fit"]
+    assert (top1["k"], top1["n"]) == (2, 2) and top1["bound"] == pytest.approx(0.05 ** 0.5)
+    assert top1["met"].startswith("not shown")  # 2 of 2 bound the rate only above 22 %
+    nulls = t["attributed to a candidate, nulls"]
+    assert (nulls["k"], nulls["n"]) == (1, 2) and nulls["met"].startswith("no")  # one null named gravity
+    line = next(x for x in text.splitlines() if x.startswith("| fiber_stiffness"))
+    assert "| 1 of 1 |" in line
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"rows": [{k: v for k, v in first[0].items() if k != "noise"}]}))
+    with pytest.raises(ValueError, match=r"bad\.json.*fiber_stiffness_s2_seed0_iid.*noise"):
+        suite.pooled([a, bad])
+    bad.write_text("[1, 2]")
+    with pytest.raises(ValueError, match=r"bad\.json.*no 'rows'"):
+        suite.pooled([bad])
