@@ -160,6 +160,7 @@ FULL = Config(divisions=[(8, 8, 16), (16, 16, 16)], members=[1, 100])
 QUICK = Config(divisions=[(2, 2, 4), (2, 2, 8)], members=[1, 4], repeat_budget_s=1.0, chunk_budget_s=3.0,
                newton_budget_s=12.0, memory_budget_mb=4.0, pilot_members=2)
 
+QUICK_FORWARD_MEMBERS = 8
 _START = time.perf_counter()
 
 
@@ -763,7 +764,9 @@ ENSEMBLE_DEFINITIONS = {
     "--mesh); --vary NAME=S also draws that parameter per member as its ForwardConfig value x lognormal(0, S) "
     "(a multi-parameter prior, beyond the one-parameter P/C10 scaling law). Load factors (1..load_steps)/load_steps.",
     "old": "the full path as run_forward(method='full') runs it: fem.solve of one member at a time (chunk = 1), "
-    "for --old-members of the M members (all by default); wall_s is their sum, wall_per_member_s its mean.",
+    "for --old-members of the M members (all by default); wall_s is their sum, wall_per_member_s its mean, "
+    "wall_each_s each member's; reached_full_load: whether its Newton reached the last load factor (a member "
+    "that stops at a limit point spends longer and is flagged in either path).",
     "new": "fem.reduced.solve_ensemble (the algorithm of run_forward(method='reduced') without its files): "
     "snapshot members by full Newton, basis + hyper-reduction, the others by reduced Newton in batches of 4, each "
     "checked by one full Newton step at the last load, re-solved in full if its estimate exceeds tol_mm. "
@@ -775,7 +778,8 @@ ENSEMBLE_DEFINITIONS = {
     "accuracy": "max over the compared members, load steps, observation points and both components of |Y_new - "
     "Y_old| (mm); frames interpolate linearly between load steps, so this bounds every frame. Target 1e-3 mm.",
     "speedup": "old.wall_per_member_s x M / new.wall_s: the old path's wall for all M members (measured on "
-    "--old-members, per member) over the new path's measured wall, same process, same threads.",
+    "--old-members, per member) over the new path's measured wall, same process, same threads: the issue's "
+    "batching efficiency, 100 x (one member alone) / (100-member run), for M = 100.",
     "two_processes_estimate_s": "new.wall_s with the snapshot and reduced phases halved (two workers on one run "
     "folder split members; build runs once per worker): an ESTIMATE for 2 cores; measure with two forward_uq.py "
     "processes.",
@@ -817,11 +821,12 @@ def ensemble_suite(cfg: Config, args) -> dict:
         f"sampled blocks {es.sampled_blocks}; phases { {k: round(v, 1) for k, v in es.timings.items()} }")
     old_members = np.linspace(0, M - 1, n_old).round().astype(int)
     log(f"  old path: fem.solve member by member, {n_old} members")
-    walls, iters, err = [], [], []
+    walls, iters, err, reached = [], [], [], []
     for i, m in enumerate(old_members):
         w, sol = clock(lambda: fem.solve(model, {k: v[m : m + 1] for k, v in params.items()}, load, options))
         walls.append(w)
         iters.append(int(sol.iterations[0]))
+        reached.append(bool(sol.converged.all()))
         err.append(float(np.nanmax(np.abs(observe(sol.u)[0] - Y_new[m]))) if sol.converged.all() else float("nan"))
         log(f"    member {m} ({es.method[m]}): {w:.1f} s, {iters[-1]} iterations, max |dY| {err[-1]:.2e} mm "
             f"[{i + 1}/{n_old}]")
@@ -832,7 +837,7 @@ def ensemble_suite(cfg: Config, args) -> dict:
         "mesh": {"resolution": fcfg.resolution, "bricks": info.get("elements"),
                  "fiber_elements": info.get("fiber_elements"), "reduced_dofs": int(model.n_red)},
         "old": {"members": n_old, "wall_s": float(np.sum(walls)), "wall_per_member_s": per_member_old,
-                "newton_iterations_per_member": iters},
+                "newton_iterations_per_member": iters, "wall_each_s": walls, "reached_full_load": reached},
         "new": {"members": M, "wall_s": wall_new, "phases_s": es.timings, "counts": {**es.counts, "checks": n_red},
                 "snapshots": es.snapshots.tolist(), "reduced_members": n_red,
                 "resolved_in_full": int((es.method == "full").sum()) - len(es.snapshots),
@@ -971,7 +976,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--members", help="fem: member counts instead of the suite's, e.g. 1,100 (1 must come "
                         "first); forward: the ensemble size M (default 100)")
     parser.add_argument("--mesh", type=int, default=1, help="forward: actuator mesh resolution (default 1)")
-    parser.add_argument("--load-steps", type=int, default=20, help="forward: output load factors (default 20)")
+    parser.add_argument("--load-steps", type=int, default=None,
+                        help="forward: output load factors (default 20; 5 with --quick)")
     parser.add_argument("--old-members", type=int, help="ensemble: members solved by the old path too (default all)")
     parser.add_argument("--vary", action="append", metavar="NAME=S", help="ensemble: also draw NAME per member as "
                         "its value x lognormal(0, S), e.g. E_fiber=0.3 (repeatable)")
@@ -984,7 +990,14 @@ def main(argv=None) -> dict:
     cfg = dataclasses.replace(QUICK if args.quick else FULL)
     if args.meshes:
         cfg.divisions = [tuple(int(v) for v in m.split("x")) for m in args.meshes.split(",")]
-    args.forward_members = int(args.members.split(",")[-1]) if args.members else FORWARD_TARGET_MEMBERS
+    # --quick: a smoke run of the forward suites too (8 members at 5 load steps, 2 by the old path)
+    quick_forward = args.quick and args.suite in ("forward", "ensemble")
+    args.forward_members = int(args.members.split(",")[-1]) if args.members else \
+        (QUICK_FORWARD_MEMBERS if quick_forward else FORWARD_TARGET_MEMBERS)
+    if args.load_steps is None:
+        args.load_steps = 5 if quick_forward else 20
+    if quick_forward and args.old_members is None:
+        args.old_members = 2
     if args.suite in ("forward", "ensemble") and args.forward_members < 1:
         parser.error("--members must be >= 1")
     if args.members and args.suite == "fem":
