@@ -18,6 +18,7 @@ pools the rows of earlier runs into one table with exact 95 % bounds and the iss
 import argparse
 import hashlib
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -186,6 +187,12 @@ def read_rows(path: Path) -> list[dict]:
             name = row.get("case", f"row {i}") if isinstance(row, dict) else f"row {i}"
             raise ValueError(f"{path}: case {name!r} lacks {', '.join(missing)} (a row of an older suite version?); "
                              "leave the file out of --pool")
+        for f in ("noise", "snr", "snr_after_base"):  # what the table keys and bands on
+            v = row[f]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or \
+                    (f == "noise" and v <= 0):
+                raise ValueError(f"{path}: case {row['case']!r} has {f} = {v!r}, not a finite number"
+                                 f"{' > 0' if f == 'noise' else ''}; mend or drop the row")
     return rows
 
 

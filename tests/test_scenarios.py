@@ -276,6 +276,9 @@ def test_pooled_table_counts_each_recording_once_and_bounds_every_rate_exactly(t
     bad.write_text(json.dumps({"rows": [{k: v for k, v in first[0].items() if k != "noise"}]}))
     with pytest.raises(ValueError, match=r"bad\.json.*fiber_stiffness_s2_seed0_iid.*noise"):
         suite.pooled([a, bad])
+    bad.write_text(json.dumps({"rows": [first[0] | {"snr_after_base": float("nan")}]}))
+    with pytest.raises(ValueError, match=r"bad\.json.*fiber_stiffness_s2_seed0_iid.*snr_after_base = nan"):
+        suite.pooled([bad])
     bad.write_text("[1, 2]")
     with pytest.raises(ValueError, match=r"bad\.json.*no 'rows'"):
         suite.pooled([bad])
