@@ -120,6 +120,17 @@ def _mean(rows, key) -> str:
     return f"{np.mean(v):.3g}" if v else "-"
 
 
+def grouped(rows, band_of) -> list[tuple[tuple, list]]:
+    """Rows grouped by (effect, kind, SNR band), in the library's effect order and then by band; an
+    effect the library does not know (a row from another version) sorts last."""
+    groups: dict[tuple, list] = {}
+    for r in rows:
+        groups.setdefault((r["effect"], r["kind"], band_of(r)), []).append(r)
+    order = {e: k for k, e in enumerate(scenarios.EFFECTS)}
+    bands = {label: k for k, (_, _, label) in enumerate(BANDS)}
+    return sorted(groups.items(), key=lambda x: (order.get(x[0][0], len(order)), bands.get(x[0][2], -1)))
+
+
 def table(rows: list[dict]) -> str:
     """Markdown table per effect and SNR band."""
     head = ("| effect | kind | SNR band (after base fit) | cases | SNR raw | SNR after base fit | correct | "
@@ -130,12 +141,7 @@ def table(rows: list[dict]) -> str:
              "fitted C10|| / sigma, the part no refit of C10 absorbs, which is what a diagnosis can see; the bands "
              "use it. Wall s: diagnoses that solved everything themselves (1 thread).", "", head,
              "|" + "---|" * (head.count("|") - 1)]
-    groups: dict[tuple, list] = {}
-    for r in rows:
-        groups.setdefault((r["effect"], r["kind"], r["band"]), []).append(r)
-    order = {e: k for k, e in enumerate(scenarios.EFFECTS)}
-    bands = {label: k for k, (_, _, label) in enumerate(BANDS)}
-    for (effect, kind, band), g in sorted(groups.items(), key=lambda x: (order[x[0][0]], bands.get(x[0][2], -1))):
+    for (effect, kind, band), g in grouped(rows, lambda r: r["band"]):
         n = len(g)
         named = sum(r["decision"] not in ("none", "unexplained") for r in g)
         unexplained = sum(r["decision"] == "unexplained" for r in g)
@@ -209,18 +215,11 @@ def pooled(paths) -> tuple[str, dict]:
             listed += 1
             key = recording_key(row)
             rows[key], sources[key] = row, str(path)
-    groups: dict[tuple, list] = {}
-    for r in rows.values():
-        band = snr_band(float(r["snr_after_base"]), r["kind"])
-        groups.setdefault((r["effect"], r["kind"], band), []).append(r)
-    order = {e: k for k, e in enumerate(scenarios.EFFECTS)}
-    bands = {label: k for k, (_, _, label) in enumerate(BANDS)}
     head = ("| effect | kind | SNR band (after base fit) | recordings | SNR after base fit | correct | "
             "exact 95 % bound of the correct rate | named a candidate | unexplained | RMS before | RMS after | "
             "FE solves |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
-    for (effect, kind, band), g in sorted(groups.items(), key=lambda x: (order.get(x[0][0], len(order)),
-                                                                          bands.get(x[0][2], -1))):
+    for (effect, kind, band), g in grouped(rows.values(), lambda r: snr_band(float(r["snr_after_base"]), r["kind"])):
         n, k = len(g), sum(scenarios.is_correct(r["effect"], str(r["decision"])) for r in g)
         named = sum(str(r["decision"]) not in ("none", "unexplained") for r in g)
         unexplained = sum(str(r["decision"]) == "unexplained" for r in g)
