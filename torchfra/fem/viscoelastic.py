@@ -262,10 +262,14 @@ class HistorySolution:
 
 
 def time_increments(times, load_factors, max_dt: float | None = None, max_dlam: float = 0.1, t0: float = 0.0,
-                    lam0: float = 0.0):
+                    lam0: float = 0.0, dt_free_dlam: float | None = None):
     """The increments of a trace starting at rest at ``t0``, ``lam0`` (default 0, 0): every interval
     between trace points split evenly so that no step is longer than ``max_dt`` nor changes the load
-    factor by more than ``max_dlam``. Returns (times, load factors, index of the trace point each step
+    factor by more than ``max_dlam``. With ``dt_free_dlam``, an interval split into steps that change
+    the load factor by at most ``dt_free_dlam`` each needs no more for ``max_dt``: the history's
+    exponential recurrence is exact for a stress linear in time over a step of any length, so a long
+    step errs only by the stress's curvature over its load increment (a hold, whose stress is
+    constant, is one exact step). Returns (times, load factors, index of the trace point each step
     ends at or -1)."""
     if np.asarray(times).size == 0:
         raise ValueError("a load trace needs at least one (time, load factor) point after its start")
@@ -286,7 +290,10 @@ def time_increments(times, load_factors, max_dt: float | None = None, max_dlam: 
         dt, dl = t[k + 1] - t[k], lam[k + 1] - lam[k]
         n = max(1, int(math.ceil(abs(dl) / max_dlam - 1e-9)))
         if max_dt is not None:
-            n = max(n, int(math.ceil(dt / max_dt - 1e-9)))
+            by_time = int(math.ceil(dt / max_dt - 1e-9))
+            if dt_free_dlam is not None:
+                by_time = min(by_time, max(1, int(math.ceil(abs(dl) / dt_free_dlam - 1e-9))))
+            n = max(n, by_time)
         for j in range(1, n + 1):
             ts.append(t[k] + dt * j / n)
             ls.append(lam[k] + dl * j / n)
@@ -296,12 +303,14 @@ def time_increments(times, load_factors, max_dt: float | None = None, max_dlam: 
 
 def solve_history(model: Model, params: dict[str, torch.Tensor], times, load_factors,
                   max_dt: float | None = None, max_dlam: float = 0.1, options: NewtonOptions | None = None,
-                  progress: bool | str = False, t0: float = 0.0, relaxed_at: float = 0.0) -> HistorySolution:
+                  progress: bool | str = False, t0: float = 0.0, relaxed_at: float = 0.0,
+                  dt_free_dlam: float | None = None) -> HistorySolution:
     """March ``model`` through the load trace ``(times, load_factors)`` for every member (params: name
     -> (N,)), advancing the history of every :class:`ViscousOverstress` after each converged
     increment. The body starts at time ``t0`` fully relaxed under the load factor ``relaxed_at``
     (default: unloaded at t = 0): the long-term elastic equilibrium there, no overstress
-    (``HistorySolution.u_start``). ``max_dt`` defaults to a quarter of the smallest relaxation time.
+    (``HistorySolution.u_start``). ``max_dt`` defaults to a quarter of the smallest relaxation time;
+    ``dt_free_dlam`` exempts load steps that small from it (:func:`time_increments`).
 
     Each increment is one Newton solve warm-started from the previous state (cutbacks inside it only
     continue the load; the history of the increment is that of its full time step). A member that
@@ -315,7 +324,9 @@ def solve_history(model: Model, params: dict[str, torch.Tensor], times, load_fac
         max_dt = 0.25 * min(float(params[f"tau{i}"].min()) for v in visc for i in range(1, v.n_terms + 1))
     if not 0.0 <= relaxed_at <= 1.0:
         raise ValueError(f"relaxed_at is a load factor in [0, 1], got {relaxed_at!r}")
-    ts, ls, ends = time_increments(times, load_factors, max_dt, max_dlam, t0, relaxed_at)
+    if dt_free_dlam is not None and not 0.0 < dt_free_dlam <= max_dlam:
+        raise ValueError(f"dt_free_dlam must lie in (0, max_dlam = {max_dlam:g}], got {dt_free_dlam!r}")
+    ts, ls, ends = time_increments(times, load_factors, max_dt, max_dlam, t0, relaxed_at, dt_free_dlam)
     T = int((ends >= 0).sum())
     out_index = np.cumsum(ends >= 0) - 1
     for v in visc:
