@@ -551,18 +551,23 @@ class HistoryPhysics:
     largest pressure 0.05 after rest: taking the body relaxed there instead left a loop at the
     lowest unloading pressures, directional z 3.6 and 2.7).
 
-    Each observation marches the FE model through the recording's frames (steps of at most
-    ``dt_fraction`` tau1 and 0.1 in load factor) and its sensitivities are forward differences
-    (one march per parameter): ``1 + 3`` marches per evaluation, each kept in ``cache_dir``."""
+    Each observation marches the FE model through the recording's frames in steps of at most 0.1 in
+    load factor and ``dt_fraction`` tau1 in time, the latter waived for steps of at most
+    ``dt_free_dlam`` in load factor (``fem.viscoelastic.time_increments``: the history's recurrence
+    is exact for a stress linear in time, however long the step against tau1;
+    ``scripts/study_history_steps.py`` measured what the waiver costs in accuracy). Its
+    sensitivities are forward differences (one march per parameter): ``1 + 3`` marches per
+    evaluation, each kept in ``cache_dir``."""
 
     STEPS = {"C10": 1e-4, "g1": 1e-4, "tau1": 1e-3}  # forward-difference steps in the coordinates
 
     def __init__(self, rec: Recording, resolution: int = 1, cache_dir=None, deck: DeckModel | None = None,
-                 dt_fraction: float = 0.5, newton: dict | None = None):
+                 dt_fraction: float = 0.5, newton: dict | None = None, dt_free_dlam: float | None = 0.025):
         self.base = ActuatorPhysics(rec, ("viscoelasticity",), resolution, 2, None, newton, deck)
         self.rec, self.deck, self.resolution = rec, deck, int(resolution)
         self.names = list(self.base.names)  # C10, g1, tau1
         self.dt_fraction = float(dt_fraction)
+        self.dt_free_dlam = None if dt_free_dlam is None else float(dt_free_dlam)
         self.newton = {"stagnation_tol": 1e-6, **(newton or {})}
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         if deck is None:
@@ -588,6 +593,7 @@ class HistoryPhysics:
                 "resolution": self.resolution, "observed": None if self.deck is None else [self.deck.camera, self.deck.face],
                 "times": np.asarray(self.rec.times, dtype=float).tolist(),
                 "pressure": np.asarray(self.rec.pressure, dtype=float).tolist(), "dt": self.dt_fraction,
+                "dt_free_dlam": self.dt_free_dlam,
                 "prehistory": "ramp from rest, else relaxed at the first frame",
                 "newton": self.newton, "z": {k: float(f"{v:.15e}") for k, v in sorted(z.items())}}
         return hashlib.sha256(json.dumps(desc, sort_keys=True).encode()).hexdigest()[:20]
@@ -613,10 +619,11 @@ class HistoryPhysics:
         options = fem.NewtonOptions(**self.newton)
         max_dt = self.dt_fraction * float(nat["tau1"])
         if ramp:  # from rest, up the first segment's ramp extended back to zero pressure
-            sol = fem.solve_history(self.model, params, t, lam, max_dt=max_dt, options=options, t0=start)
+            sol = fem.solve_history(self.model, params, t, lam, max_dt=max_dt, options=options, t0=start,
+                                    dt_free_dlam=self.dt_free_dlam)
         else:  # relaxed under the first frame's pressure
             sol = fem.solve_history(self.model, params, t[1:], lam[1:], max_dt=max_dt, options=options,
-                                    t0=float(t[0]), relaxed_at=float(lam[0]))
+                                    t0=float(t[0]), relaxed_at=float(lam[0]), dt_free_dlam=self.dt_free_dlam)
         self.marches += 1
         ok = bool(sol.converged[0])
         Y = None
