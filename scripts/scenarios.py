@@ -75,6 +75,16 @@ def noise_seed(case: dict) -> int:
     return int(hashlib.sha256(text.encode()).hexdigest()[:8], 16)
 
 
+def fe_work(cached: Path) -> int:
+    """The FE work a diagnosis kept in ``cached``: its elastic solves (``solve_*.npz``) and its marches
+    of the FE model with history variables (``history_*.npz``, the creep refit's), one file each
+    (``physics.ActuatorPhysics`` and ``physics.HistoryPhysics`` write them); 0 before it ran."""
+    if not cached.exists():
+        return 0
+    kept = [*cached.glob("solve_*.npz"), *cached.glob("history_*.npz")]
+    return sum(not f.name.endswith(".tmp.npz") for f in kept)  # a write cut short leaves a .tmp
+
+
 def run_case(case: dict, a, out: Path, diagnose) -> dict:
     gen = dict(noise=a.noise, seed=noise_seed(case), correlation=case["correlation"], truth_c10=case["truth_c10"],
                trace=case["trace"], cache_dir=out / "clean", generator=a.generator, pressure=a.pressure)
@@ -83,7 +93,7 @@ def run_case(case: dict, a, out: Path, diagnose) -> dict:
         gen.update(resolution=1, frames=6)
     rec, clean, meta = scenarios.make_scenario(case["effect"], case["size"], **gen)
     cached = out / "diag" / case["case"] / "solves"
-    before = len(list(cached.glob("solve_*.npz"))) if cached.exists() else 0
+    before = fe_work(cached)
     t0 = time.perf_counter()
     known = not a.estimate_noise  # else the diagnosis estimates sigma and the correlation length itself
     d = diagnose(rec, noise=a.noise if known else None, correlation=(case["correlation"] or None) if known else None,
@@ -106,7 +116,8 @@ def run_case(case: dict, a, out: Path, diagnose) -> dict:
         "noise_estimated": bool(a.estimate_noise), "sigma_used": float(d["noise"]["sigma"]),
         "correlation_used": float(d["noise"]["correlation_length_mm"]),
         "rms_before": float(d["fit_before"]["rms"]), "rms_after": float(d["fit_after"]["rms"]),
-        "solves": len(list(cached.glob("solve_*.npz"))),  # FE solves of the diagnosis: one file each
+        "solves": fe_work(cached),  # FE solves and history marches of the diagnosis: one file each
+        "history_marches": len([f for f in cached.glob("history_*.npz") if not f.name.endswith(".tmp.npz")]),
         "seconds": float(d["cost"].get("seconds", seconds)),
         "solves_reused": before,  # solves found on disk from an earlier run: "seconds" then is not the cost
         "generation": {"generator": a.generator, "pressure_max": a.pressure,

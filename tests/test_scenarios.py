@@ -282,3 +282,40 @@ def test_pooled_table_counts_each_recording_once_and_bounds_every_rate_exactly(t
     bad.write_text("[1, 2]")
     with pytest.raises(ValueError, match=r"bad\.json.*no 'rows'"):
         suite.pooled([bad])
+
+
+def test_a_suite_row_counts_the_creep_refits_fe_marches_with_its_solves(tmp_path, monkeypatch):
+    """scripts/scenarios.py: a row's FE cost is every FE computation the diagnosis kept, its elastic
+    solves and its marches of the FE model with history variables (the creep refit's, one file each in
+    the run's solves folder; the rows used to count the solves only: 26 for a sensor lag whose
+    diagnosis counted 55); a write cut short (.tmp) is no solve; what an earlier run left is reported
+    as reused."""
+    from types import SimpleNamespace
+
+    from helpers import load_script
+
+    suite = load_script("scenarios")
+    Z = np.zeros((3, 4, 3))
+    meta = dict(kind="outside", value=0.5, trace={"kind": "cycle"}, snr=40.0, expected="unexplained",
+                generation={"resolution": 2, "frames": 3}, solves=2, seconds=1.0)
+    monkeypatch.setattr(suite.scenarios, "make_scenario",
+                        lambda effect, size, **kw: (SimpleNamespace(Z=Z + 1.0), Z.copy(), meta))
+    case = dict(case="sensor_lag_s3_seed0_iid", effect="sensor_lag", size=3, truth_c10=0.0062, trace="cycle",
+                seed=0, correlation=0.0)
+    run_dir = tmp_path / "diag" / case["case"]
+    (run_dir / "solves").mkdir(parents=True)
+    (run_dir / "solves" / "solve_old.npz").write_bytes(b"")  # left by an interrupted run
+
+    def diagnose(rec, noise, correlation, run_dir, progress):
+        for name in ("solve_a.npz", "solve_b_values.npz", "history_c.npz", "history_d.npz", "solve_e.tmp.npz"):
+            (run_dir / "solves" / name).write_bytes(b"")
+        np.savez(run_dir / "residuals.npz", before=np.full_like(Z, 2.0))
+        return {"decision": "unexplained", "mismatch_detected": {"detected": True},
+                "noise": {"sigma": 0.25, "correlation_length_mm": 0.0}, "fit_before": {"rms": 4.0},
+                "fit_after": {"rms": 4.0}, "cost": {"solves": 5, "seconds": 3.0}}
+
+    a = SimpleNamespace(noise=0.25, generator="torchfra", pressure=0.022, resolution=2, quick=False,
+                        estimate_noise=False, verbose=False)
+    row = suite.run_case(case, a, tmp_path, diagnose)
+    assert row["solves"] == 5 and row["history_marches"] == 2 and row["solves_reused"] == 1
+    assert row["correct"] and row["snr_after_base"] == pytest.approx(np.sqrt(Z.size) / 0.25)
