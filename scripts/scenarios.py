@@ -75,14 +75,19 @@ def noise_seed(case: dict) -> int:
     return int(hashlib.sha256(text.encode()).hexdigest()[:8], 16)
 
 
+def kept_files(cached: Path, prefix: str) -> int:
+    """How many ``<prefix>_*.npz`` results a diagnosis kept in ``cached`` (0 before it ran); a write
+    cut short leaves a ``.tmp.npz``, which is no result."""
+    if not cached.exists():
+        return 0
+    return sum(not f.name.endswith(".tmp.npz") for f in cached.glob(f"{prefix}_*.npz"))
+
+
 def fe_work(cached: Path) -> int:
     """The FE work a diagnosis kept in ``cached``: its elastic solves (``solve_*.npz``) and its marches
     of the FE model with history variables (``history_*.npz``, the creep refit's), one file each
-    (``physics.ActuatorPhysics`` and ``physics.HistoryPhysics`` write them); 0 before it ran."""
-    if not cached.exists():
-        return 0
-    kept = [*cached.glob("solve_*.npz"), *cached.glob("history_*.npz")]
-    return sum(not f.name.endswith(".tmp.npz") for f in kept)  # a write cut short leaves a .tmp
+    (``physics.ActuatorPhysics`` and ``physics.HistoryPhysics`` write them)."""
+    return kept_files(cached, "solve") + kept_files(cached, "history")
 
 
 def run_case(case: dict, a, out: Path, diagnose) -> dict:
@@ -117,7 +122,7 @@ def run_case(case: dict, a, out: Path, diagnose) -> dict:
         "correlation_used": float(d["noise"]["correlation_length_mm"]),
         "rms_before": float(d["fit_before"]["rms"]), "rms_after": float(d["fit_after"]["rms"]),
         "solves": fe_work(cached),  # FE solves and history marches of the diagnosis: one file each
-        "history_marches": len([f for f in cached.glob("history_*.npz") if not f.name.endswith(".tmp.npz")]),
+        "history_marches": kept_files(cached, "history"),
         "seconds": float(d["cost"].get("seconds", seconds)),
         "solves_reused": before,  # solves found on disk from an earlier run: "seconds" then is not the cost
         "generation": {"generator": a.generator, "pressure_max": a.pressure,
