@@ -41,8 +41,10 @@ def snr_band(snr: float, kind: str) -> str:
     return next(label for lo, hi, label in BANDS if lo <= snr < hi)
 
 
-def cases(effects, seeds: int, correlations, quick: bool, sizes=None, generator: str = "torchfra") -> list[dict]:
-    """Every (effect, size, truth C10, trace, seed, noise correlation) to run, with a unique name."""
+def cases(effects, seeds: int, correlations, quick: bool, sizes=None, generator: str = "torchfra",
+          first_seed: int = 0) -> list[dict]:
+    """Every (effect, size, truth C10, trace, seed, noise correlation) to run, with a unique name;
+    seeds ``first_seed`` .. ``first_seed + seeds - 1``."""
     out = []
     for effect in effects:
         e = scenarios.EFFECTS[effect]
@@ -55,7 +57,7 @@ def cases(effects, seeds: int, correlations, quick: bool, sizes=None, generator:
             chosen = every[-1:] if quick else [k for k in every if sizes is None or k in sizes]
             variants = [(k, 0.0062, None) for k in chosen]
         for size, c10, trace in variants:
-            for seed in range(seeds):
+            for seed in range(first_seed, first_seed + seeds):
                 for ell in correlations:
                     name = (f"{effect}_s{size}" + (f"_c{c10:g}_{trace}" if effect == "none" else "")
                             + f"_seed{seed}_" + (f"ell{ell:g}" if ell else "iid")
@@ -361,6 +363,8 @@ def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--effects", default="all", help=f"'all' or a comma list of: {', '.join(scenarios.EFFECTS)}")
     p.add_argument("--seeds", type=int, default=3, help="noise seeds per scenario")
+    p.add_argument("--first-seed", type=int, default=0,
+                   help="the first noise seed's index: more seeds of a suite already run, under new names")
     p.add_argument("--noise", type=float, default=1.0, help="noise std sigma (mm)")
     p.add_argument("--correlation", default="0",
                    help="comma list of noise correlation lengths ell (mm); 0 is i.i.d. noise")
@@ -404,8 +408,9 @@ def main(argv=None) -> dict:
         scenarios.check_generator(e, a.generator)
     if not 0 < a.pressure <= scenarios.PRESSURE_MAX:
         raise ValueError(f"--pressure must lie in (0, {scenarios.PRESSURE_MAX}] MPa, got {a.pressure}")
-    if a.seeds < 1 or not a.noise > 0:
-        raise ValueError(f"need --seeds >= 1 and --noise > 0, got {a.seeds} and {a.noise}")
+    if a.seeds < 1 or a.first_seed < 0 or not a.noise > 0:
+        raise ValueError(f"need --seeds >= 1, --first-seed >= 0 and --noise > 0, got {a.seeds}, {a.first_seed} "
+                         f"and {a.noise}")
     correlations = [float(x) for x in a.correlation.split(",")]
     if any(c < 0 for c in correlations):
         raise ValueError(f"correlation lengths must be >= 0 mm, got {a.correlation}")
@@ -416,7 +421,7 @@ def main(argv=None) -> dict:
     results = out / "results.json"
     rows = {r["case"]: r for r in json.loads(results.read_text())["rows"]} if results.exists() else {}
     sizes = None if a.sizes == "all" else {int(x) for x in a.sizes.split(",")}
-    todo = cases(effects, 1 if a.quick else a.seeds, correlations, a.quick, sizes, a.generator)
+    todo = cases(effects, 1 if a.quick else a.seeds, correlations, a.quick, sizes, a.generator, a.first_seed)
     for c in todo:
         c["case"] += (f"_p{a.pressure:g}" if a.pressure != scenarios.PRESSURE_MAX else "") + \
             (f"_res{a.resolution}" if a.resolution != 2 and not a.quick else "")

@@ -134,6 +134,13 @@ def test_suite_driver_selects_cases_and_tabulates_by_the_snr_after_the_base_fit(
     # same case the same noise on every run
     seeds = [suite.noise_seed(c) for c in todo]
     assert len(set(seeds)) == len(todo) and seeds == [suite.noise_seed(dict(c)) for c in todo]
+    # more seeds of a suite already run (--first-seed 2): seeds 2 and 3, new names and new draws, and a
+    # case of seed 0 named and drawn as before
+    more = suite.cases(["gravity"], 2, [0.0], False, {3}, first_seed=2)
+    assert [c["seed"] for c in more] == [2, 3] and not {c["case"] for c in more} & set(names)
+    assert not {suite.noise_seed(c) for c in more} & set(seeds)
+    again = suite.cases(["gravity"], 1, [0.0], False, {3}, first_seed=0)[0]
+    assert again["case"] in names and suite.noise_seed(again) in seeds
     row = dict(effect="gravity", kind="library", correct=True, decision="gravity", rms_before=1.3, rms_after=1.0,
                solves=12, snr=46.0)
     rows = [row | dict(snr_after_base=30.0, band=suite.snr_band(30.0, "library"), seconds=100.0, solves_reused=0),
