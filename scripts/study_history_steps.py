@@ -40,8 +40,8 @@ import torch  # noqa: E402
 
 from torchfra import fem  # noqa: E402
 from torchfra.geometry.actuator import ActuatorGeometry, build_actuator_model  # noqa: E402
-from torchfra.observe import ObservationOperator, visible_faces  # noqa: E402
-from torchfra.scenarios import BULK_RATIO, E_FIBER, PRESSURE_MAX, dic_grid, pressure_trace  # noqa: E402
+from torchfra.scenarios import (BULK_RATIO, E_FIBER, PRESSURE_MAX, elastic_frames, face_observer,  # noqa: E402
+                               pressure_trace)
 
 
 def main() -> None:
@@ -70,7 +70,7 @@ def main() -> None:
     model, _ = build_actuator_model(ActuatorGeometry(resolution=a.resolution))
     fem.with_viscoelasticity(model)
     mesh = model.mesh
-    op = ObservationOperator(mesh, visible_faces(mesh, (1.0, 0.0, 0.0)), points=dic_grid(mesh, 2.0))
+    op = face_observer(mesh, 2.0)
     options = fem.NewtonOptions(stagnation_tol=1e-6)
 
     def march(members, max_dt, max_dlam, label):
@@ -86,11 +86,10 @@ def main() -> None:
     everyone = list(range(n))
     elastic = {**{k: v[:1] for k, v in params.items()}, "g1": torch.zeros(1, dtype=torch.float64)}
     base_model, _ = build_actuator_model(ActuatorGeometry(resolution=a.resolution))
-    levels = np.unique(lam[lam > 0])
-    base_sol = fem.solve(base_model, {k: v for k, v in elastic.items() if k not in ("g1", "tau1")}, levels, options)
-    Yb = op(base_sol.u[0][:, : mesh.n_nodes]).numpy()
-    base = np.zeros((lam.size,) + Yb.shape[1:])
-    base[lam > 0] = Yb[np.searchsorted(levels, lam[lam > 0])]
+    base, base_sol = elastic_frames(base_model, {k: v for k, v in elastic.items() if k not in ("g1", "tau1")}, lam,
+                                    options, op)
+    if not base_sol.converged.all():
+        raise RuntimeError(f"the elastic body did not solve ({list(base_sol.status)})")
 
     rules = []
     for dlam in sorted(a.dlam, reverse=True):  # coarse first: the progress tells early how it goes

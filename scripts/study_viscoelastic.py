@@ -36,8 +36,8 @@ import torch  # noqa: E402
 from torchfra import fem  # noqa: E402
 from torchfra.geometry.actuator import ActuatorGeometry, build_actuator_model  # noqa: E402
 from torchfra.history import creep_load  # noqa: E402
-from torchfra.observe import ObservationOperator, visible_faces  # noqa: E402
-from torchfra.scenarios import BULK_RATIO, E_FIBER, PRESSURE_MAX, dic_grid, pressure_trace  # noqa: E402
+from torchfra.scenarios import (BULK_RATIO, E_FIBER, PRESSURE_MAX, elastic_frames, face_observer,  # noqa: E402
+                               pressure_trace)
 
 
 def main() -> None:
@@ -58,22 +58,13 @@ def main() -> None:
     base_params = {"C10": a.C10, "D1": 1.0 / (BULK_RATIO * a.C10), "E_fiber": E_FIBER, "P": PRESSURE_MAX}
     as_t = lambda d: {k: torch.tensor([v], dtype=torch.float64) for k, v in d.items()}  # noqa: E731
 
-    def observer(model):
-        mesh = model.mesh
-        op = ObservationOperator(mesh, visible_faces(mesh, (1.0, 0.0, 0.0)), points=dic_grid(mesh, 2.0))
-        return lambda u: op(u[:, : mesh.n_nodes]).numpy()
-
     def elastic_at(levels):
         """The elastic body at load factors ``levels`` (K,), zero where the level is 0."""
         model, _ = build_actuator_model(ActuatorGeometry(resolution=a.resolution))
-        obs = observer(model)
-        distinct = np.unique(levels[levels > 0])
         t0 = time.perf_counter()
-        sol = fem.solve(model, as_t(base_params), distinct, fem.NewtonOptions(stagnation_tol=1e-6))
+        full, sol = elastic_frames(model, as_t(base_params), levels, fem.NewtonOptions(stagnation_tol=1e-6),
+                                   face_observer(model.mesh, 2.0))
         assert sol.converged.all(), sol.status
-        Y = obs(sol.u[0])
-        full = np.zeros((levels.size,) + Y.shape[1:])
-        full[levels > 0] = Y[np.searchsorted(distinct, levels[levels > 0])]
         return full, time.perf_counter() - t0
 
     base, base_s = elastic_at(lam)
@@ -84,14 +75,14 @@ def main() -> None:
         approx, approx_s = elastic_at(mu.numpy()[1:])
         model, _ = build_actuator_model(ActuatorGeometry(resolution=a.resolution))
         fem.with_viscoelasticity(model)
-        obs = observer(model)
+        op = face_observer(model.mesh, 2.0)
         t0 = time.perf_counter()
         sol = fem.solve_history(model, as_t({**base_params, "g1": g1, "tau1": a.tau1}), times, lam,
                                 max_dt=a.max_dt, options=fem.NewtonOptions(stagnation_tol=1e-6),
                                 progress=f"g1 = {g1:g}, FE history")
         assert sol.converged.all(), sol.status
         fe_s = time.perf_counter() - t0
-        fe = obs(sol.u[0])
+        fe = op(sol.u[0][:, : model.mesh.n_nodes]).numpy()
         row = {"g1": g1, "tau1": a.tau1, "snr_effect": float(np.linalg.norm(fe - base)),
                "snr_approx_error": float(np.linalg.norm(fe - approx)),
                "max_abs_approx_error_mm": float(np.abs(fe - approx).max()),

@@ -345,6 +345,25 @@ def dic_grid(mesh, spacing: float) -> np.ndarray:
 _ARRAYS = ("clean", "points", "times", "recorded", "true", "mesh")
 
 
+def face_observer(mesh, spacing: float) -> ObservationOperator:
+    """The suite's camera (DESIGN §6): uy, uz on the face x = +8 mm at the DIC grid of ``spacing`` mm,
+    whose points are not mesh nodes (``dic_grid``)."""
+    return ObservationOperator(mesh, visible_faces(mesh, (1.0, 0.0, 0.0)), points=dic_grid(mesh, spacing))
+
+
+def elastic_frames(model, params, lam: np.ndarray, options, op, progress=False):
+    """The elastic body observed by ``op`` at the frames' load factors ``lam`` (K,): one FE solve
+    through the distinct positive levels, no displacement at a frame whose level is 0. Returns
+    (observations (K, P, 2) of the first member, the solve); the caller checks its status."""
+    distinct = np.unique(lam[lam > 0])
+    sol = fem.solve(model, params, distinct, options, progress=progress)
+    Y = op(sol.u[0, :, : model.mesh.n_nodes]).numpy()  # (distinct, P, 2)
+    frames = np.zeros((lam.size,) + Y.shape[1:])
+    pos = lam > 0
+    frames[pos] = Y[np.searchsorted(distinct, lam[pos])]
+    return frames, sol
+
+
 def _clean_key(effect, value, c10, resolution, spacing, frames, trace, pressure, generator="torchfra") -> dict:
     if value == EFFECTS[effect].null:  # an effect at its null is the base model: share its cache
         effect, value = "none", 0.0
@@ -426,7 +445,7 @@ def clean_observations(effect: str, value: float, c10: float, resolution: int, s
     model, info = (build_actuator_model(ActuatorGeometry(resolution=resolution), **model_kw) if effect == "none"
                    else build_model(effect, value, resolution, **model_kw))
     mesh = info["mesh"]
-    op = ObservationOperator(mesh, visible_faces(mesh, (1.0, 0.0, 0.0)), points=dic_grid(mesh, spacing))
+    op = face_observer(mesh, spacing)
     P_load = float(p_true.max())
     params = {k: torch.tensor([v], dtype=torch.float64)
               for k, v in {**model_parameters(effect, value, c10), "P": P_load}.items()}
@@ -454,16 +473,11 @@ def clean_observations(effect: str, value: float, c10: float, resolution: int, s
             shutil.rmtree(scratch, ignore_errors=True)
         clean = op(torch.as_tensor(U)).numpy()
     else:
-        distinct = np.unique(lam[lam > 0])
-        sol = fem.solve(model, params, distinct, options, progress=progress)
+        clean, sol = elastic_frames(model, params, lam, options, op, progress)
         if sol.status[0] != "converged":
             raise RuntimeError(f"scenario {effect} at {value:g} did not converge (C10 = {c10}, resolution "
                                f"{resolution}, reached {sol.load_reached[0]:.3f} of {P_load:g} MPa); choose a "
                                "smaller size")
-        Y = op(sol.u[0, :, : mesh.n_nodes]).numpy()  # (distinct, P, 2)
-        clean = np.zeros((frames, op.n_points, 2))
-        pos = lam > 0
-        clean[pos] = Y[np.searchsorted(distinct, lam[pos])]
     arrays = {"clean": clean, "points": op.points, "times": times, "recorded": recorded, "true": p_true,
               "mesh": np.array([mesh.n_elements, mesh.n_nodes, info["dofs"]])}
     if path is not None:
