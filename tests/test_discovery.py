@@ -505,6 +505,27 @@ def test_decision_names_every_extension_the_data_cannot_tell_apart():
     assert decide(tried(("fiber_stiffness", True, 52.0)), ranking, 5.0)[0] == "compressibility|fiber_stiffness"
 
 
+def test_a_pair_is_accepted_only_when_it_beats_each_member_alone():
+    """A pair holds its members as nested models (each member alone is the pair with the other term
+    at its null), so it names a second term only when its log evidence beats every member's refit by
+    the decisive margin (5); refits of other candidates do not count. The case that showed it: a
+    compressible bulk (k = 3, noise 0.25 mm) refitted alone left a faint gravity score, and the pair
+    with a compliant fiber put E_fiber at 388 +- 191 MPa, 8.9 posterior std below its null in log
+    E_fiber (a stiff fiber's effect saturates), at log evidence -125.7 against the bulk alone's -124.4."""
+    from torchfra.discovery import beats_its_members
+
+    def tried(*rows):
+        return [{"candidates": list(c), "fit": {"log_evidence": ev}} for c, ev in rows]
+
+    pair = ("compressibility", "fiber_stiffness")
+    t = tried((("compressibility",), -124.4), (("fiber_stiffness",), -172.9), (("gravity",), 50.0))
+    assert not beats_its_members({"log_evidence": -125.7}, pair, t, 5.0)
+    assert not beats_its_members({"log_evidence": -119.5}, pair, t, 5.0)  # 4.9 over the bulk: not decisive
+    assert beats_its_members({"log_evidence": -119.3}, pair, t, 5.0)  # gravity's 50 is not a member's
+    assert not beats_its_members({"log_evidence": -119.3}, pair, t + tried((("fiber_stiffness",), -120.0)), 5.0)
+    assert beats_its_members({"log_evidence": -125.7}, pair, tried((("gravity",), 50.0)), 5.0)  # no member refitted
+
+
 def test_a_secant_point_that_does_not_solve_leaves_the_derivatives_test(monkeypatch):
     """A failed Newton solve at the fiber's secant point (E_fiber = 209 MPa) is not an error: the
     candidate keeps the derivative's 1-dof test, no secant column is made, and the solve is counted."""
