@@ -44,6 +44,10 @@ def main(argv=None) -> dict:
     p.add_argument("--alpha", type=float, default=0.01, help="test level")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (recorded)")
     p.add_argument("--quiet", action="store_true")
+    p.add_argument("--no-mesh-error", action="store_true",
+                   help="leave the diagnosis mesh's own discretization error in an extension's residual (by default "
+                        "one solve a mesh finer estimates it and takes it out before the surrogate test); only for a "
+                        "recording made by this very model on its own mesh")
     add_arguments(p)
     add_deck_flags(p)
     p.add_argument("--gravity", default=None, metavar="X,Y,Z",
@@ -79,7 +83,8 @@ def main(argv=None) -> dict:
     if reused and not a.quiet:
         print(f"resuming {run_dir}: {reused} FE solves on disk are reused")
     out = diagnose(rec, noise=a.noise, correlation=a.correlation, candidates=cands, run_dir=run_dir,
-                   resolution=a.mesh, load_steps=a.load_steps, alpha=a.alpha, progress=not a.quiet, deck=deck)
+                   resolution=a.mesh, load_steps=a.load_steps, alpha=a.alpha, progress=not a.quiet, deck=deck,
+                   mesh_error=not a.no_mesh_error)
     out["threads"] = a.threads
     (run_dir / "diagnosis.json").write_text(json.dumps(out, indent=1, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
     if not a.quiet:

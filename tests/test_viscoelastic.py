@@ -133,7 +133,7 @@ class _ScalingActuator(ActuatorPhysics):
         self.W = sp.identity(rec.n_points, format="csr")
         self.cache_dir, self._memo = None, {}
 
-    def _solve_nodal(self, z):
+    def _solve_nodal(self, z, values_only=False):  # the same closed form on every mesh: no discretization error
         c = math.exp(z["C10"]) / 0.006
         lam = np.concatenate([[0.0], self.steps])
         x = lam / c
