@@ -99,7 +99,8 @@ def test_diagnose_script_takes_a_deck(deck, tmp_path):
     diagnose_script = load_script("diagnose")
     out = diagnose_script.main([str(path), "--inp", str(deck), "--noise", str(SIGMA), "--correlation", "0",
                                 "--candidates", "gravity", "--gravity=-1,0,0", "--load-steps", "5", "--runs-dir", str(tmp_path / "runs"),
-                                "--name", "beam", "--quiet"])
+                                "--name", "beam", "--quiet", "--no-mesh-error"])
     assert out["model"]["kind"] == "deck" and out["decision"] in ("gravity", "unexplained")
+    assert out["tried"] and not any("mesh_error" in t for t in out["tried"])  # --no-mesh-error: not even tried
     saved = json.loads((tmp_path / "runs" / "beam" / "diagnosis.json").read_text())
     assert saved["model"]["path"] == str(deck)
