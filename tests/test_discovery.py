@@ -574,3 +574,29 @@ def test_the_mesh_error_estimate_takes_a_finer_recordings_discretization_out():
     # on a user's deck no refinement is known: nothing is taken out, and the reason is given
     none, why = discretization_error(rec, (), z, 1, 10, deck=object())
     assert none is None and "deck" in why["why"]
+
+
+def test_surrogate_failure_rate_of_a_mesh_error_matches_monte_carlo():
+    """scripts/study_mesh_error.py turns the scores a noise-free residual leaves into the rate at which
+    the surrogate test fails on noisy recordings (non-central chi^2, one-sided for a one-sided
+    candidate). Reference: 200 000 draws of the scores with unit noise added along the directions."""
+    from helpers import load_script
+    from scipy import stats
+
+    failure = load_script("study_mesh_error").failure
+    level = 6.25e-4
+    scores = {"gravity": {"score": 2.46, "dof": 1, "p_value": 0.06},  # one-sided, pulled into its range
+              "compliant_base": {"score": 4.33, "dof": 2, "p_value": 0.11},
+              "fiber_pitch": {"score": 1.96, "dof": 1, "p_value": 0.16}}
+    rows = {"gravity": {"one_sided": True}, "compliant_base": {}, "fiber_pitch": {}}
+    rng = np.random.default_rng(0)
+    n = 200_000
+    g = math.sqrt(2.46) + rng.standard_normal(n)  # the one-sided test rejects a large pull into the range only
+    fail = g > stats.norm.isf(level)
+    b = rng.standard_normal((n, 2)) + [math.sqrt(4.33), 0.0]
+    fail |= (b**2).sum(1) > stats.chi2.isf(level, 2)
+    f = math.sqrt(1.96) + rng.standard_normal(n)
+    fail |= f**2 > stats.chi2.isf(level, 1)
+    assert failure(scores, rows, level) == pytest.approx(fail.mean(), abs=3e-3)
+    assert failure({k: dict(v, score=0.0) for k, v in scores.items()}, rows, level) == pytest.approx(
+        1 - (1 - level) ** 3, rel=1e-6)  # no error left: the level alone
