@@ -92,6 +92,9 @@ def main(argv=None) -> dict:
         print(f"mismatch: {'yes' if out['mismatch_detected']['detected'] else 'no'} (chi2 p = {g['p_value']:.3g}, "
               f"RMS {g['rms']:.3f} noise units); decision: {out['decision']}; RMS after {out['fit_after']['rms']:.3f}; "
               f"{out['cost']['solves']} FE solves, {out['cost']['seconds']:.0f} s -> {run_dir}")
+        floor = out["noise"]["model_floor"]
+        if floor["below"]:
+            print(f"caution: {floor['why']}")
         h = out["hysteresis"]
         if h.get("detected"):
             print(f"hysteresis: loading and unloading differ at equal pressure (largest loop {h['largest_loop_mm']:.3g} mm "

@@ -6,7 +6,9 @@ band of the nominal level); the score (Lagrange-multiplier) statistic of a linea
 the drop of the residual sum of squares when the candidate is fitted (exact for linear models);
 noise estimation against the generating sigma / correlation length.
 """
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,8 +16,8 @@ import torch
 
 from torchfra import fem
 from torchfra.calibration import synthetic_recording
-from torchfra.discovery import (ALL_CANDIDATES, DiagnosisError, NoiseModel, Whitener, consistency, diagnose,
-                                discretization_error, estimate_noise, locate, rank)
+from torchfra.discovery import (ALL_CANDIDATES, NOISE_FLOOR_MM, DiagnosisError, NoiseModel, Whitener, consistency,
+                                diagnose, discretization_error, estimate_noise, locate, model_floor, rank)
 from torchfra.physics import COORDINATES
 from torchfra.recordings import Recording
 
@@ -252,6 +254,8 @@ def test_diagnosis_names_a_pressure_offset_and_resumes_without_solving(offset_re
     assert abs(ext["mean"] - 0.004) < 3 * ext["std"] + 2e-4, ext
     assert out["fit_after"]["rms"] < 1.1 < out["fit_before"]["rms"]
     assert (tmp_path / "d" / "residual_map.png").exists()
+    assert out["noise"]["model_floor"]["below"] is False  # the model's own recording: no error of its own
+    assert "mesh_error=False" in out["noise"]["model_floor"]["why"]
 
     def no_solve(*a, **k):
         raise AssertionError("a resumed diagnosis solved again")
@@ -600,3 +604,24 @@ def test_surrogate_failure_rate_of_a_mesh_error_matches_monte_carlo():
     assert failure(scores, rows, level) == pytest.approx(fail.mean(), abs=3e-3)
     assert failure({k: dict(v, score=0.0) for k, v in scores.items()}, rows, level) == pytest.approx(
         1 - (1 - level) ** 3, rel=1e-6)  # no error left: the level alone
+
+
+def test_a_noise_below_the_models_own_floor_is_said():
+    """The floor is what scripts/study_noise_floor.py measured (results/study_noise_floor.json, a
+    noise-free resolution-2 null fitted at resolution 1, non-central chi^2 of every test): the smallest
+    scanned noise at which the model's own discretization error flags a null at most 5 % of the time,
+    more than 5 % at the next noise below. Under it a diagnosis says so and what to do; at or above it,
+    on a user's deck (its error unknown) or on a recording of the diagnosis mesh itself it does not."""
+    study = json.loads((Path(__file__).resolve().parents[1] / "results" / "study_noise_floor.json").read_text())
+    scan = study["noisy_null_flagged"]["as_it_is"]
+    assert NOISE_FLOOR_MM[1] == study["floor_mm_at_5_percent"]["as_it_is"]
+    below = max((float(s) for s in scan if float(s) < NOISE_FLOOR_MM[1]))
+    assert scan[f"{NOISE_FLOOR_MM[1]:g}"]["flagged_at_most"] <= 0.05 < scan[f"{below:g}"]["flagged_at_most"]
+    assert scan[f"{below:g}"]["flagged_at_least"] > scan["1"]["flagged_at_least"]  # the mesh's error, not the level
+    low = model_floor(0.1, 1)
+    assert low["below"] and low["floor_mm"] == 0.25 and "--mesh 2" in low["why"], low
+    assert model_floor(0.25, 1) == {"floor_mm": 0.25, "below": False, "why": None}
+    assert not model_floor(0.1, 1, mesh_error=False)["below"]
+    assert not model_floor(0.1, 1, deck=object())["below"]
+    unmeasured = model_floor(0.1, 2)
+    assert not unmeasured["below"] and "not measured" in unmeasured["why"]
