@@ -54,17 +54,18 @@ def scan(d: dict, sigma0: float, alpha: float) -> dict:
     noise-free diagnosis ``d`` whitened at ``sigma0``."""
     g = d["mismatch_detected"]["global"]
     lam_g = g["statistic"]  # noise-free: the statistic is the non-centrality
+    tested = [r for r in d["ranking"] if r["dof"] > 0]
+    noise_alone = min(alpha / 2 + sum(r["level"] for r in tested), 1.0)  # the levels' union bound
     out = {}
     for s in NOISE_SCAN:
         f = (sigma0 / s) ** 2
         p_g = fires(lam_g * f, g["dof"], alpha / 2)
         p_c = {r["name"]: fires(r["score"] * f, r["dof"], r["level"], bool(r.get("one_sided")),
-                                r["p_value"] <= 0.5) for r in d["ranking"] if r["dof"] > 0}
+                                r["p_value"] <= 0.5) for r in tested}
         p_all = [p_g, *p_c.values()]
         out[f"{s:g}"] = {"global_test": p_g, "largest_score_test": max(p_c.values()),
                          "flagged_at_least": max(p_all), "flagged_at_most": min(sum(p_all), 1.0),
-                         "noise_alone_at_most": min(alpha / 2 + sum(r["level"] for r in d["ranking"] if r["dof"] > 0),
-                                                    1.0),
+                         "noise_alone_at_most": noise_alone,
                          "score_tests": p_c}
     return out
 
