@@ -94,7 +94,13 @@ def main(argv=None) -> dict:
               f"{out['cost']['solves']} FE solves, {out['cost']['seconds']:.0f} s -> {run_dir}")
         floor = out["noise"]["model_floor"]
         if floor["below"]:
-            print(f"caution: {floor['why']}")
+            out_of_it = floor.get("taken_out", {})
+            if out_of_it.get("rms_mm") is not None:
+                print(f"note: the noise is below the model's own floor ({floor['floor_mm']:g} mm): its discretization "
+                      f"error ({out_of_it['rms_mm']:.3g} mm RMS, one solve at resolution {out_of_it['resolution']}) was "
+                      "taken out of the recording before the tests")
+            else:
+                print(f"caution: {floor['why']}; here it could not be: {out_of_it.get('why')}")
         h = out["hysteresis"]
         if h.get("detected"):
             print(f"hysteresis: loading and unloading differ at equal pressure (largest loop {h['largest_loop_mm']:.3g} mm "
