@@ -716,3 +716,35 @@ def test_below_the_floor_the_meshs_error_is_taken_out_before_the_tests(tmp_path,
     assert out["cost"]["mesh_error_solves"] == 1
     saved = np.load(tmp_path / "d" / "residuals.npz")
     assert np.array_equal(saved["mesh_error_taken_out"], error)
+
+
+@pytest.mark.parametrize("estimated", [True, False])
+def test_diagnose_script_says_what_it_did_below_the_floor(tmp_path, monkeypatch, capsys, estimated):
+    """scripts/diagnose.py, after a diagnosis under the noise floor: a note with the error taken out
+    (its RMS and the finer mesh), or, when it could not be estimated, a caution with the reason and
+    what to do. The diagnosis itself is replaced by one returning such a result (the step is tested
+    by test_below_the_floor_the_meshs_error_is_taken_out_before_the_tests)."""
+    from helpers import load_script
+    from torchfra.recordings import write_recording
+
+    script = load_script("diagnose")
+    path = write_recording(tmp_path / "rec.csv", grid_recording(K=6, n=3))
+    floor = model_floor(0.05, 1)
+    floor["taken_out"] = ({"resolution": 2, "solves": 1, "seconds": 30.0, "rms_mm": 0.0487, "why": None} if estimated
+                          else {"resolution": 2, "solves": 0, "seconds": 0.0, "rms_mm": None,
+                                "why": "the solve at resolution 2 did not converge at the refit's MAP"})
+    out = {"noise": {"model_floor": floor}, "decision": "none", "hysteresis": {"applicable": False},
+           "mismatch_detected": {"detected": False, "global": {"p_value": 0.5, "rms": 1.0}},
+           "fit_after": {"rms": 1.0}, "cost": {"solves": 9, "seconds": 1.0}}
+    def fake_diagnose(rec, run_dir, **kw):
+        Path(run_dir).mkdir(parents=True, exist_ok=True)  # as diagnose() does
+        return out
+
+    monkeypatch.setattr(script, "diagnose", fake_diagnose)
+    script.main([str(path), "--runs-dir", str(tmp_path / "runs"), "--name", "d"])
+    said = " ".join(capsys.readouterr().out.split())
+    if estimated:
+        assert "note: the noise is below the model's own floor (0.25 mm)" in said and "0.0487 mm RMS" in said
+        assert "resolution 2" in said and "caution" not in said
+    else:
+        assert "caution:" in said and "did not converge" in said and "--mesh 2" in said
