@@ -174,8 +174,9 @@ def quiet_triples(D2: np.ndarray, width: float = 8.0) -> np.ndarray:
     turn of the load (the peak of a load-unload cycle, the start or end of a hold) puts a kink of the
     response into the triple centred on it: measured 0.73 mm RMS on the actuator's cycle, fifteen
     times a noise of 0.05 mm, where it alone made the noise look 3.6 times larger and spatially
-    correlated over 6.5 mm (at 0.25 mm, the suite's two cycles: 1.08 and 1.15 times, over 4.0 and 3.7 mm). Per triple the mean square; a triple more than ``width`` robust standard
-    deviations (1.4826 x the median absolute deviation over triples) above the median is left out.
+    correlated over 6.5 mm (at 0.25 mm, the suite's two cycles: 1.08 and 1.15 times, over 4.0 and
+    3.7 mm). Per triple the mean square; a triple more than ``width`` robust standard deviations
+    (1.4826 x the median absolute deviation over triples) above the median is left out.
     A triple of noise alone goes beyond that with probability ~1e-7 even under correlated noise (its
     mean square averages tens of independent values at least; measured: no triple left out in 1000
     recordings of noise correlated over 3 mm, 20 frames, 10 x 10 points, where 5 deviations lost one
