@@ -229,6 +229,20 @@ def test_noise_estimate_leaves_a_turn_of_the_load_out(ell):
         assert nm.ell == 0.0
 
 
+def test_noise_that_cannot_be_estimated_is_said():
+    """Every other frame missing: no point is seen in three consecutive frames, so no second
+    difference in time exists; the diagnosis says what to give instead, without a warning."""
+    import warnings
+
+    rec = grid_recording(K=6, n=4)
+    rec.Z = np.random.default_rng(0).standard_normal((6, 16, 2))
+    rec.Z[1::2] = np.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(DiagnosisError, match="three consecutive frames.*--noise SIGMA"):
+            diagnose(rec, progress=False)
+
+
 def test_noise_alone_leaves_no_frame_triple_out():
     """The rule that leaves a turn of the load out must keep the noise: over 200 noise-only
     recordings (20 frames, correlated over 3 mm: the fewest independent values per triple the suite

@@ -130,6 +130,10 @@ def estimate_noise(rec: Recording) -> NoiseModel:
                              "(or give --noise SIGMA)")
     D2 = np.diff(Z, n=2, axis=0)  # second differences remove a linear-in-time response too
     quiet = quiet_triples(D2)
+    if not quiet.any():
+        raise DiagnosisError(f"{rec.source}: no point is observed in three consecutive frames, so the noise "
+                             "cannot be estimated from differences in time; give --noise SIGMA (mm) and "
+                             "--correlation ELL (mm, 0 for independent noise)")
     D2 = D2[quiet]
     v = np.nanmean(D2**2) / 6.0  # var of x_{k+1} - 2 x_k + x_{k-1} for white noise: 6 sigma^2
     sigma = float(np.sqrt(v))
