@@ -52,3 +52,25 @@ def load_script(name: str):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def assert_same_json(got, stored, path="", rtol=1e-6, skip=("seconds",)):
+    """``got`` equals ``stored`` field for field: the same keys, lists of the same length, equal strings,
+    integers and booleans, floats within ``rtol`` (a different CPU's BLAS may move the last digits);
+    fields named in ``skip`` (wall times) are left out. The first difference is named by its path."""
+    if isinstance(stored, dict):
+        assert isinstance(got, dict), f"{path}: {type(got).__name__} instead of an object"
+        assert sorted(got) == sorted(stored), f"{path}: keys {sorted(set(got) ^ set(stored))} differ"
+        for k in stored:
+            if k not in skip:
+                assert_same_json(got[k], stored[k], f"{path}.{k}", rtol, skip)
+    elif isinstance(stored, list):
+        assert isinstance(got, list) and len(got) == len(stored), f"{path}: {got!r} against {stored!r}"
+        for i, (g, s) in enumerate(zip(got, stored)):
+            assert_same_json(g, s, f"{path}[{i}]", rtol, skip)
+    elif isinstance(stored, float) and not isinstance(got, bool):
+        assert isinstance(got, (int, float)), f"{path}: {got!r} against {stored!r}"
+        assert abs(got - stored) <= rtol * max(abs(stored), 1e-12) or (np.isnan(got) and np.isnan(stored)), \
+            f"{path}: {got!r} against {stored!r}"
+    else:
+        assert got == stored and type(got) is type(stored), f"{path}: {got!r} against {stored!r}"

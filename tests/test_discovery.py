@@ -21,6 +21,10 @@ from torchfra.discovery import (ALL_CANDIDATES, NOISE_FLOOR_MM, DiagnosisError, 
 from torchfra.physics import COORDINATES
 from torchfra.recordings import Recording
 
+from helpers import assert_same_json
+
+DATA = Path(__file__).parent / "data"
+
 
 def grid_recording(K=30, n=12, spacing=2.0, Z=None):
     y, z = np.meshgrid(np.arange(n) * spacing, np.arange(n) * spacing)
@@ -311,6 +315,10 @@ def test_diagnosis_names_a_pressure_offset_and_resumes_without_solving(offset_re
     assert (tmp_path / "d" / "residual_map.png").exists()
     assert out["noise"]["model_floor"]["below"] is False  # the model's own recording: no error of its own
     assert "mesh_error=False" in out["noise"]["model_floor"]["why"]
+    # the whole diagnosis.json, field for field, as the code before the package's restructuring wrote it
+    # (tests/data/diagnosis_pressure_offset.json; wall times aside)
+    written = json.loads((tmp_path / "d" / "diagnosis.json").read_text())
+    assert_same_json(written, json.loads((DATA / "diagnosis_pressure_offset.json").read_text()))
 
     def no_solve(*a, **k):
         raise AssertionError("a resumed diagnosis solved again")
