@@ -24,11 +24,11 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from . import fem
-from .forward import ForwardConfig, forward_model, observed_faces, parameter_set, with_deck
-from .observe import ObservationError, ObservationOperator, frame_times, visible_faces
-from .assimilation.filters import PolynomialSlave
-from .recordings import Recording, RecordingError
+from torchfra import fem
+from torchfra.assimilation.filters import PolynomialSlave
+from torchfra.forward import ForwardConfig, forward_model, observed_faces, parameter_set, with_deck
+from torchfra.observe import ObservationError, ObservationOperator, frame_times, visible_faces
+from torchfra.recordings import Recording, RecordingError
 
 
 @dataclass
@@ -134,7 +134,7 @@ def validate_recording(config: CalibrationConfig) -> None:
     ensemble's range, points off the visible face) before any FE work or helper process starts."""
     if config.recording is None:
         return
-    from .recordings import read_recording
+    from torchfra.recordings import read_recording
 
     rec = read_recording(config.recording)
     fwd_cfg = forward_config(config)
@@ -252,7 +252,7 @@ def synthetic_recording(c10, resolution: int = 1, points="nodes", noise: float =
     observations (K, P, 2). ``deck``: ``{"inp", "camera", "face"}`` of the user's own model (see
     :class:`ForwardConfig`); its ``pressure`` at load factor 1 is the deck's, ``pressure`` a trace
     up to it."""
-    from .observe import regular_grid
+    from torchfra.observe import regular_grid
 
     times = frame_times(100) if times is None else np.asarray(times, dtype=np.float64)
     deck = with_deck(ForwardConfig(resolution=resolution, parameters=list(parameters), **deck)) if deck else None
@@ -375,7 +375,7 @@ def restart_solve(solver: ActuatorSolver, reduced, params: dict, x: torch.Tensor
         sol = fem.solve(solver.model, params, [1.0], solver.options(initial_increment=1.0),
                         start=fem.WarmStart(x, lam_now.numpy(), np.full(n, target)))
         return sol.u[:, -1], sol.x_last, int(sol.iterations.sum()), 0, sol.status != "converged"
-    from .fem.reduced import solve_reduced
+    from torchfra.fem.reduced import solve_reduced
 
     rs = solve_reduced(reduced, params, [target], start=(x, float(lam_now[0])), check=False)
     u = rs.u[:, -1].clone()
@@ -409,12 +409,12 @@ class RestartRanks:
         self.solver, self.reduced = None, None  # rank 0's own share is solved with these (set by start)
 
     def _header(self, cmd: float, value: float = 0.0) -> None:
-        from .distributed import broadcast_tensor
+        from torchfra.distributed import broadcast_tensor
 
         broadcast_tensor(torch.tensor([cmd, value], dtype=torch.float64), self.r)
 
     def start(self, solver: ActuatorSolver, reduced, reduced_file: Path | None, names: list[str]) -> None:
-        from .distributed import broadcast_tensor
+        from torchfra.distributed import broadcast_tensor
 
         self.solver, self.reduced = solver, reduced
         self._header(self.START)
@@ -426,7 +426,7 @@ class RestartRanks:
         self.names = list(names)
 
     def solve(self, params: dict, x: torch.Tensor, lam_now: torch.Tensor, target: float):
-        from .distributed import broadcast_tensor, recv_tensors
+        from torchfra.distributed import broadcast_tensor, recv_tensors
 
         self.busy = True
         self._header(self.SOLVE, target)
@@ -469,8 +469,8 @@ def serve_restart(config, r) -> int:
     rank 0 sends, until its stop. Returns the number of forecasts served."""
     import io
 
-    from .distributed import broadcast_tensor, send_tensors
-    from .fem.reduced import HyperReducedModel
+    from torchfra.distributed import broadcast_tensor, send_tensors
+    from torchfra.fem.reduced import HyperReducedModel
 
     solver, reduced, names, served = None, None, [], 0
     while True:
@@ -511,7 +511,7 @@ FILTERS = ("hierarchical", "hierarchical_nonlinear", "restart", "exact")
 
 
 def _stats(c10) -> dict[str, float]:
-    from .assimilation import summarize
+    from torchfra.assimilation import summarize
 
     return summarize(np.asarray(c10).reshape(-1))
 
@@ -577,8 +577,8 @@ class ExactReference:
     (:class:`~torchfra.assimilation.exact_nd.TensorMap`); each with its leave-one-out error."""
 
     def __init__(self, pset, Q0: torch.Tensor, Y: np.ndarray, grid: int = 4000):
-        from .assimilation import SweepMap
-        from .assimilation.exact_nd import TensorMap
+        from torchfra.assimilation import SweepMap
+        from torchfra.assimilation.exact_nd import TensorMap
 
         if pset.d > 6:
             raise ValueError(f"{pset.d} uncertain parameters: calibrate at most 6 at once")
@@ -618,8 +618,8 @@ class ExactReference:
         return self.map.forecaster(frames)
 
     def posterior(self, Z, r, frames=None) -> ExactPosterior:
-        from .assimilation import grid_posterior
-        from .assimilation.exact_nd import sampled_posterior, tensor_posterior
+        from torchfra.assimilation import grid_posterior
+        from torchfra.assimilation.exact_nd import sampled_posterior, tensor_posterior
 
         if self.d > 3:
             raw = sampled_posterior(self.map, Z, r, self.prior_mean, self.prior_std, self.names, self.naturals,
@@ -633,8 +633,8 @@ class ExactReference:
         return ExactPosterior(raw, list(self.names), self.naturals)
 
     def data_fit(self, post: ExactPosterior, Z, r) -> dict:
-        from .assimilation import data_fit
-        from .assimilation.exact_nd import data_fit_nd
+        from torchfra.assimilation import data_fit
+        from torchfra.assimilation.exact_nd import data_fit_nd
 
         if self.d == 1:
             f = self.naturals[0]
@@ -644,7 +644,7 @@ class ExactReference:
 
 def _load_recording(config: CalibrationConfig, run_dir: Path, progress: bool):
     """The recording to calibrate on, and its noise-free observations and truth when synthetic."""
-    from .recordings import read_recording, write_recording
+    from torchfra.recordings import read_recording, write_recording
 
     if config.recording is not None:
         return read_recording(config.recording), None, None
@@ -706,7 +706,7 @@ RESTART_KEYS = ("members", "resolution", "seed", "recording", "truth_c10", "nois
 
 def _forward_reduction(solver: ActuatorSolver, fwd_dir):
     """The forward ensemble's reduced model (``reduced_model.npz``) for the restart filter, or None."""
-    from .fem.reduced import HyperReducedModel
+    from torchfra.fem.reduced import HyperReducedModel
 
     path = None if fwd_dir is None else Path(fwd_dir) / "reduced_model.npz"
     if path is None or not path.exists():
@@ -718,7 +718,7 @@ def _forward_reduction(solver: ActuatorSolver, fwd_dir):
 def _restart(config, run_dir, rec, lam, Q0, Z, r, tracked, progress, fwd_dir=None, ranks=None, slots=None):
     """Restart filter on every ``restart_every``-th frame, checkpointed after each step; its FE
     re-solves shared out over the ranks of ``ranks`` (a :class:`RestartRanks`) when given."""
-    from .assimilation import FilterResult, sequential_filter
+    from torchfra.assimilation import FilterResult, sequential_filter
 
     idx = np.arange(config.restart_every - 1, rec.n_frames, config.restart_every)
     ckpt = run_dir / "restart_checkpoint.pt"
@@ -763,8 +763,8 @@ def run_calibration(config: CalibrationConfig, run_dir, progress: bool = True, r
     are free for them (measured: a 20-member reduced re-solve at resolution 1 took 16.6 s on 1
     thread, 9.9 s on 2). ``restart_ranks``: a :class:`RestartRanks` whose ranks share those
     re-solves instead (faster: 231 s against 286 s on 2 threads for the main job's restart filter)."""
-    from .assimilation import hierarchical_filter
-    from .forward import run_forward
+    from torchfra.assimilation import hierarchical_filter
+    from torchfra.forward import run_forward
 
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -912,7 +912,7 @@ def restart_spline_check(config, res, idx, ref: ExactReference, Q0, Z, r, tracke
     restart filter forecast for (the tracked entries, all members, all steps) against the FE
     forecasts, and the same filter (same prior, same generator seed) rerun with the map in place of
     the FE solves against the FE run's posterior (per parameter)."""
-    from .assimilation import sequential_filter
+    from torchfra.assimilation import sequential_filter
 
     pset = ref.pset
     err = max(float(np.abs(ref.predict(res.Q[k].numpy())[:, idx[k]][:, tracked] - res.Y_tracked[k].numpy()).max())
@@ -943,7 +943,7 @@ def coverage_study(config, Q0, Yt, ref: ExactReference, clean, truth: dict, out_
     the exact reference's map (checked against the FE restart run by :func:`restart_spline_check`),
     and the exact posterior on the same frames. ``hier``: the hierarchical filters' frames (default
     all; otherwise the exact posterior on those frames is added)."""
-    from .assimilation import hierarchical_filter, sequential_filter
+    from torchfra.assimilation import hierarchical_filter, sequential_filter
 
     pset = ref.pset
     r = torch.full((clean.shape[1],), config.noise ** 2, dtype=torch.float64)

@@ -69,9 +69,20 @@ import numpy as np
 import torch
 from scipy import linalg, stats
 
-from .physics import (CANDIDATE_PARAMETERS, COORDINATES, FAR_SECANTS, HISTORY_DEPENDENT_CANDIDATES, LOAD_MAP_ONLY,
-                      NUISANCE, RIVALS, ActuatorPhysics, DeckModel, Evaluation, HistoryPhysics)
-from .recordings import Recording, RecordingError
+from torchfra.physics import (
+    CANDIDATE_PARAMETERS,
+    COORDINATES,
+    FAR_SECANTS,
+    HISTORY_DEPENDENT_CANDIDATES,
+    LOAD_MAP_ONLY,
+    NUISANCE,
+    RIVALS,
+    ActuatorPhysics,
+    DeckModel,
+    Evaluation,
+    HistoryPhysics,
+)
+from torchfra.recordings import Recording, RecordingError
 
 ALL_CANDIDATES = tuple(sorted(set(CANDIDATE_PARAMETERS) - set(RIVALS.values())))
 MAX_PRESSURE = 0.5  # MPa: beyond any pressure the soft actuator survives (a unit mistake)
@@ -1194,7 +1205,7 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
                  point_rms_before=where["point_rms"], X=rec.X, point_ids=rec.point_ids,
                  mesh_error_taken_out=np.zeros_like(raw) if taken_out is None else taken_out)
         try:
-            from .report.diagnosis import write_figures
+            from torchfra.report.diagnosis import write_figures
 
             write_figures(run_dir, rec, out, base, accepted[1] if accepted else None, nm.sigma, where)
         except ImportError:  # figures need matplotlib

@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from . import fem
-from .observe import ObservationOperator, frame_times, interpolate_in_time, visible_faces
-from .priors import ParameterSet, lognormal_parameters, paper_prior
+from torchfra import fem
+from torchfra.observe import ObservationOperator, frame_times, interpolate_in_time, visible_faces
+from torchfra.priors import ParameterSet, lognormal_parameters, paper_prior
 
 KAPPA_T = 0.005615  # MPa, the paper's reference value of C10
 
@@ -92,7 +92,7 @@ def read_deck(path) -> tuple[fem.Model, dict[str, float], str]:
     constraints, values: an ``*INCLUDE``d file that changed changes it)."""
     import hashlib
 
-    from .io.abaqus_read import read_inp
+    from torchfra.io.abaqus_read import read_inp
 
     path = _deck_path(path)
     model, values = read_inp(path)
@@ -190,7 +190,7 @@ def observed_faces(mesh, config) -> np.ndarray | str:
 
 def observed_surface(config):
     """The observed faces of ``config``'s model as a registration target (DIC points are placed on it)."""
-    from .registration import mesh_face
+    from torchfra.registration import mesh_face
 
     model = forward_model(config)[0]
     return mesh_face(model.mesh, faces=observed_faces(model.mesh, config))
@@ -382,7 +382,7 @@ def _reduced_model(run_dir: Path, model, snap_records: list[dict], params, snap,
     else built from the full-Newton members' states (``snap_records`` of members ``snap``) and saved
     (arrays only, never unpickled). ``rebuild``: build it again from these members (the basis
     enriched by members whose reduced solve failed its check) and replace the file."""
-    from .fem.reduced import HyperReducedModel, build_reduced
+    from torchfra.fem.reduced import HyperReducedModel, build_reduced
 
     path = run_dir / "reduced_model.npz"
     if path.exists() and not rebuild:
@@ -453,11 +453,11 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
     Returns a dict with the model, observation operator, parameters, per-member solver records and
     ``Y_fe`` (N, frames, P, 2); members already on disk are loaded, not solved again.
     """
-    from .fem.reduced import select_snapshots, solve_reduced
+    from torchfra.fem.reduced import select_snapshots, solve_reduced
 
     if config.method not in ("reduced", "full"):
         raise ValueError(f"forward method must be 'reduced' or 'full', got {config.method!r}")
-    from .distributed import broadcast_ints, ranks, share_file, share_files
+    from torchfra.distributed import broadcast_ints, ranks, share_file, share_files
 
     run_dir = Path(run_dir)
     r = ranks()  # torchrun: members are shared out by rank, not claimed through lock files

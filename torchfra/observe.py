@@ -21,8 +21,8 @@ import scipy.sparse as sp
 import torch
 import trimesh
 
-from .fem.elements import HEX20_FACES, QUAD8_NATURAL, quad8_shape
-from .fem.mesh import Mesh, MeshError
+from torchfra.fem.elements import HEX20_FACES, QUAD8_NATURAL, quad8_shape
+from torchfra.fem.mesh import Mesh, MeshError
 
 # A Quad8 face as 6 triangles: the four corners cut off, the mid-edge quad split in two. Reversed
 # so that the triangle normals point out of the element (HEX20_FACES order points into it).

@@ -53,13 +53,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from . import fem
-from .fem.sensitivity import sensitivities
-from .fem.candidates import fiber_pitch_parameter
-from .geometry.actuator import CAVITY_OFFSET, ActuatorGeometry, build_actuator_model
-from .history import G1, LAG, TAU1, creep_load, delayed_load, normalized_time
-from .observe import ObservationError, ObservationOperator, visible_faces
-from .recordings import Recording, RecordingError
+from torchfra import fem
+from torchfra.fem.candidates import fiber_pitch_parameter
+from torchfra.fem.sensitivity import sensitivities
+from torchfra.geometry.actuator import CAVITY_OFFSET, ActuatorGeometry, build_actuator_model
+from torchfra.history import G1, LAG, TAU1, creep_load, delayed_load, normalized_time
+from torchfra.observe import ObservationError, ObservationOperator, visible_faces
+from torchfra.recordings import Recording, RecordingError
 
 BULK_RATIO = 1000.0
 E_FIBER = 31000.0
@@ -191,7 +191,7 @@ class DeckModel:
     gravity: tuple[float, float, float] = GRAVITY_DIRECTION
 
     def values(self) -> tuple[dict[str, float], str]:
-        from .forward import deck_summary
+        from torchfra.forward import deck_summary
 
         return deck_summary(self.path)
 
@@ -269,7 +269,7 @@ class ActuatorPhysics:
         self.steps = np.arange(1, self.load_steps + 1) / self.load_steps
 
     def _deck_model(self, material):
-        from .io.abaqus_read import read_inp
+        from torchfra.io.abaqus_read import read_inp
 
         bad = self.deck.available(self.candidates)
         if bad:
@@ -277,7 +277,7 @@ class ActuatorPhysics:
             raise ValueError(f"candidate {c!r} on the deck {self.deck.path}: {why}")
         model, _ = read_inp(self.deck.path)
         if material is not None:
-            from .fem.candidates import with_material
+            from torchfra.fem.candidates import with_material
 
             with_material(model, material)
         if "gravity" in self.candidates:
@@ -514,7 +514,7 @@ class ActuatorPhysics:
 
 
 def _deck_faces(mesh, deck: DeckModel):
-    from .forward import ForwardConfig, observed_faces
+    from torchfra.forward import ForwardConfig, observed_faces
 
     return observed_faces(mesh, ForwardConfig(inp=deck.path, camera=deck.camera, face=deck.face or ""))
 
@@ -573,7 +573,7 @@ class HistoryPhysics:
         if deck is None:
             self.model, _ = build_actuator_model(ActuatorGeometry(resolution=self.resolution))
         else:
-            from .io.abaqus_read import read_inp
+            from torchfra.io.abaqus_read import read_inp
 
             self.model, _ = read_inp(deck.path)
         fem.with_viscoelasticity(self.model)

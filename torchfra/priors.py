@@ -42,7 +42,7 @@ class PriorError(ValueError):
 
 
 def _registry():
-    from .physics import COORDINATES
+    from torchfra.physics import COORDINATES
 
     return COORDINATES
 
@@ -260,7 +260,7 @@ class ParameterSet:
     # -- the FE model -------------------------------------------------------------------------------
     def candidates(self) -> tuple[str, ...]:
         """Candidate physics the model must switch on to carry these parameters."""
-        from .physics import CANDIDATE_PARAMETERS
+        from torchfra.physics import CANDIDATE_PARAMETERS
 
         names = set(self.names) | {n for n, _ in self.fixed}
         on = {c for c, ps in CANDIDATE_PARAMETERS.items() if names & set(ps) and c not in ("compressibility",
@@ -269,9 +269,9 @@ class ParameterSet:
 
     def build_model(self, resolution: int, integration: str = "full"):
         """The actuator model with the candidates these parameters need, and its info."""
-        from . import fem
-        from .geometry.actuator import ActuatorGeometry, build_actuator_model
-        from .physics import GRAVITY_DIRECTION
+        from torchfra import fem
+        from torchfra.geometry.actuator import ActuatorGeometry, build_actuator_model
+        from torchfra.physics import GRAVITY_DIRECTION
 
         on = self.candidates()
         return build_actuator_model(ActuatorGeometry(resolution=resolution), integration=integration,

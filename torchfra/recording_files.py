@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .recordings import COLUMNS, MAX_LINE_BYTES, MAX_ROWS, RecordingError
+from torchfra.recordings import COLUMNS, MAX_LINE_BYTES, MAX_ROWS, RecordingError
 
 _CHUNK = 1 << 16  # rows converted to an array at a time, so memory grows by arrays, not Python floats
 _DELIMITERS = (",", ";", "\t")

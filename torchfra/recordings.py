@@ -200,7 +200,7 @@ def read_recording(path, max_displacement: float = 1000.0, *, max_line_bytes: in
     Limits, refused with a message naming the keyword that raises them: ``max_line_bytes`` of a CSV
     line, ``max_rows`` data rows (CSV) or entries of an array (NPZ), ``max_frame_points`` frames x
     points."""
-    from . import recording_files as files
+    from torchfra import recording_files as files
 
     path = Path(path)
     try:

@@ -325,7 +325,7 @@ def sampled_posterior(tmap: TensorMap, Z, r, prior_mean, prior_std, names=None, 
 def data_fit_nd(post: TensorPosterior, tmap: TensorMap, Z, r) -> dict:
     """:func:`torchfra.assimilation.exact.data_fit` for several parameters: the posterior's mass at
     the edges of the member box, and the residual at the grid's MAP in noise units."""
-    from .exact import EDGE_MASS_LIMIT, RESIDUAL_RMS_LIMIT, UNIT_HINTS
+    from torchfra.assimilation.exact import EDGE_MASS_LIMIT, RESIDUAL_RMS_LIMIT, UNIT_HINTS
 
     Z = np.asarray(Z, dtype=np.float64)
     r = np.broadcast_to(np.asarray(r, dtype=np.float64), Z.shape)

@@ -20,7 +20,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from .analysis import AnalysisInfo, analysis
+from torchfra.assimilation.analysis import AnalysisInfo, analysis
 
 
 class LinearSlave:

@@ -8,20 +8,20 @@ Build a :class:`Model` from a :class:`Mesh`, add energy terms (:class:`Hex20Soli
 constrain it (``clamp``, ``prescribe``, ``rigid``, ``embed``) and call :func:`solve` with one
 tensor per parameter holding every member's value.
 """
-from .constraints import rotation_matrix
-from .gravity import Gravity
-from .helix import FiberPitch
-from .materials import Material, MooneyRivlin, NeoHookean, ParameterError
-from .mesh import Mesh, MeshError
-from .model import Evaluation, Model
-from .newton import NewtonOptions, Solution, WarmStart, solve
-from .pressure import CavityPressure, FollowerPressure
-from .sensor import SensorCavityPressure
-from .solid import Hex20Solid
-from .springs import ElasticSupport, support_face
-from .terms import Term, TermOutput
-from .truss import Truss, two_node_truss
-from .viscoelastic import HistorySolution, ViscousOverstress, solve_history, with_viscoelasticity
+from torchfra.fem.constraints import rotation_matrix
+from torchfra.fem.gravity import Gravity
+from torchfra.fem.helix import FiberPitch
+from torchfra.fem.materials import Material, MooneyRivlin, NeoHookean, ParameterError
+from torchfra.fem.mesh import Mesh, MeshError
+from torchfra.fem.model import Evaluation, Model
+from torchfra.fem.newton import NewtonOptions, Solution, WarmStart, solve
+from torchfra.fem.pressure import CavityPressure, FollowerPressure
+from torchfra.fem.sensor import SensorCavityPressure
+from torchfra.fem.solid import Hex20Solid
+from torchfra.fem.springs import ElasticSupport, support_face
+from torchfra.fem.terms import Term, TermOutput
+from torchfra.fem.truss import Truss, two_node_truss
+from torchfra.fem.viscoelastic import HistorySolution, ViscousOverstress, solve_history, with_viscoelasticity
 
 __all__ = [
     "CavityPressure", "ElasticSupport", "FiberPitch", "Evaluation", "FollowerPressure", "Gravity", "Hex20Solid", "Material",

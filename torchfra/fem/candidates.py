@@ -32,26 +32,26 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from ..params import ParameterInfo
-from .gravity import Gravity
-from .helix import pitch_parameter
-from .materials import Material, MooneyRivlin, NeoHookean
-from .model import Model
-from .pressure import CavityPressure
-from .sensor import SensorCavityPressure
-from .solid import Hex20Solid
-from .springs import ElasticSupport
+from torchfra.fem.gravity import Gravity
+from torchfra.fem.helix import pitch_parameter
+from torchfra.fem.materials import Material, MooneyRivlin, NeoHookean
+from torchfra.fem.model import Model
+from torchfra.fem.pressure import CavityPressure
+from torchfra.fem.sensor import SensorCavityPressure
+from torchfra.fem.solid import Hex20Solid
+from torchfra.fem.springs import ElasticSupport
+from torchfra.params import ParameterInfo
 
 
 def fiber_pitch_parameter() -> ParameterInfo:
     """The pitch candidate's registry entry, null at the actuator geometry's drawn pitch."""
-    from ..geometry.actuator import ActuatorGeometry
+    from torchfra.geometry.actuator import ActuatorGeometry
 
     return pitch_parameter(ActuatorGeometry().pitch_deg)
 
 
 def _cavity_offset_parameter() -> ParameterInfo:
-    from ..geometry.actuator import CAVITY_OFFSET
+    from torchfra.geometry.actuator import CAVITY_OFFSET
 
     return CAVITY_OFFSET
 

@@ -17,11 +17,11 @@ import numpy as np
 import torch
 from torch.func import grad, vmap
 
-from ..params import ParameterInfo, check_parameters
-from .elements import as_tensor, gauss_hex, hex20_shape
-from .mesh import Mesh
-from .morph import Morphable
-from .terms import Term, TermOutput, node_dofs
+from torchfra.fem.elements import as_tensor, gauss_hex, hex20_shape
+from torchfra.fem.mesh import Mesh
+from torchfra.fem.morph import Morphable
+from torchfra.fem.terms import Term, TermOutput, node_dofs
+from torchfra.params import ParameterInfo, check_parameters
 
 STANDARD_GRAVITY = 9.81e3  # mm/s^2
 

@@ -40,10 +40,10 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from ..params import ParameterInfo, check_parameters
-from .elements import as_tensor, gauss_1d, hex20_shape, hex20_shape_values, line3_shape
-from .mesh import Mesh
-from .terms import Term, TermOutput
+from torchfra.fem.elements import as_tensor, gauss_1d, hex20_shape, hex20_shape_values, line3_shape
+from torchfra.fem.mesh import Mesh
+from torchfra.fem.terms import Term, TermOutput
+from torchfra.params import ParameterInfo, check_parameters
 
 PITCH_RANGE_DEG = (1.0, 4.0)
 
@@ -166,7 +166,7 @@ class FiberPitch(Term):
         if alpha in self._cache:
             self._cache.move_to_end(alpha)
             return self._cache[alpha]
-        from ..geometry.embedding import locate_points
+        from torchfra.geometry.embedding import locate_points
 
         X = self._nodes_numpy(alpha)
         host, xi = locate_points(self.mesh, X)

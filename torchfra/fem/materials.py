@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 import torch
 from torch.func import grad, jacfwd, jvp, vmap
 
-from ..params import ParameterError, ParameterInfo, check_parameters
-from .kinematics import cofactor, det3
+from torchfra.fem.kinematics import cofactor, det3
+from torchfra.params import ParameterError, ParameterInfo, check_parameters
 
 __all__ = ["GaussPointTangent", "Material", "MooneyRivlin", "NeoHookean", "ParameterError", "PointDerivatives"]
 

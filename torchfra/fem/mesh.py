@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .elements import HEX20_EDGES, HEX20_FACES, HEX20_NATURAL, gauss_hex, hex20_shape
+from torchfra.fem.elements import HEX20_EDGES, HEX20_FACES, HEX20_NATURAL, gauss_hex, hex20_shape
 
 
 class MeshError(ValueError):

@@ -7,11 +7,11 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from .assembly import SparsePattern
-from .constraints import DofMap
-from .mesh import Mesh, MeshError
-from .morph import MorphError
-from .terms import Term
+from torchfra.fem.assembly import SparsePattern
+from torchfra.fem.constraints import DofMap
+from torchfra.fem.mesh import Mesh, MeshError
+from torchfra.fem.morph import MorphError
+from torchfra.fem.terms import Term
 
 
 @dataclass
@@ -248,7 +248,7 @@ class Model:
             t.validate(params)
         infos = {name: info for name, (_, info) in self._morphs.items() if info is not None}
         if infos:
-            from ..params import check_parameters
+            from torchfra.params import check_parameters
 
             check_parameters(infos, params, "the model's morph")
         return n.pop()

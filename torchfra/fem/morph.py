@@ -22,8 +22,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .elements import gauss_hex, hex20_shape
-from .mesh import Mesh
+from torchfra.fem.elements import gauss_hex, hex20_shape
+from torchfra.fem.mesh import Mesh
 
 
 class MorphError(ValueError):

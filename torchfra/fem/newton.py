@@ -29,8 +29,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .linsolve import SingularMatrixError, SparseSolver
-from .model import Evaluation, Model
+from torchfra.fem.linsolve import SingularMatrixError, SparseSolver
+from torchfra.fem.model import Evaluation, Model
 
 
 @dataclass

@@ -18,10 +18,10 @@ import numpy as np
 import torch
 from torch.func import vmap
 
-from .elements import as_tensor, gauss_quad, quad8_shape
-from .mesh import Mesh
-from .morph import Morphable
-from .terms import Term, TermOutput, node_dofs
+from torchfra.fem.elements import as_tensor, gauss_quad, quad8_shape
+from torchfra.fem.mesh import Mesh
+from torchfra.fem.morph import Morphable
+from torchfra.fem.terms import Term, TermOutput, node_dofs
 
 
 class _FaceLoad(Morphable, Term):

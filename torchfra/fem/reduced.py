@@ -50,9 +50,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .linsolve import SingularMatrixError, SparseSolver
-from .model import Model
-from .terms import Term
+from torchfra.fem.linsolve import SingularMatrixError, SparseSolver
+from torchfra.fem.model import Model
+from torchfra.fem.terms import Term
 
 
 @dataclass
@@ -585,7 +585,7 @@ def solve_ensemble(model: Model, params: dict, load_factors, options=None, snaps
     rest on their reduced basis, checked, and in full again where the check's estimate exceeds
     ``tol`` mm or the reduced Newton fails. ``reduced``: options of :func:`solve_reduced` (``xtol``,
     ``polish_tol``: mm, sized for the actuator)."""
-    from .newton import solve
+    from torchfra.fem.newton import solve
 
     model.finalize()
     dtype = model.dtype

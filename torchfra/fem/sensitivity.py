@@ -27,9 +27,9 @@ import torch
 import torch.autograd.forward_ad as fwAD
 from torch.func import jvp
 
-from .linsolve import SparseSolver
-from .model import Model
-from .newton import Solution
+from torchfra.fem.linsolve import SparseSolver
+from torchfra.fem.model import Model
+from torchfra.fem.newton import Solution
 
 
 @dataclass

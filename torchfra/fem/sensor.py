@@ -24,9 +24,9 @@ import math
 
 import torch
 
-from ..params import ParameterInfo, check_parameters
-from .mesh import Mesh
-from .pressure import CavityPressure
+from torchfra.fem.mesh import Mesh
+from torchfra.fem.pressure import CavityPressure
+from torchfra.params import ParameterInfo, check_parameters
 
 
 class SensorCavityPressure(CavityPressure):

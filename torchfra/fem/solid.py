@@ -18,12 +18,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .elements import as_tensor, gauss_hex, hex20_shape, linear_pressure_modes
-from .kinematics import deformation_gradient, det3
-from .materials import GaussPointTangent, Material
-from .mesh import Mesh
-from .morph import Morphable
-from .terms import Term, TermOutput, node_dofs
+from torchfra.fem.elements import as_tensor, gauss_hex, hex20_shape, linear_pressure_modes
+from torchfra.fem.kinematics import deformation_gradient, det3
+from torchfra.fem.materials import GaussPointTangent, Material
+from torchfra.fem.mesh import Mesh
+from torchfra.fem.morph import Morphable
+from torchfra.fem.terms import Term, TermOutput, node_dofs
 
 
 class Hex20Solid(Morphable, Term):

@@ -25,10 +25,10 @@ import numpy as np
 import torch
 from torch.func import hessian, vmap
 
-from ..params import ParameterInfo, check_parameters
-from .elements import as_tensor, gauss_quad, quad8_shape
-from .mesh import Mesh
-from .terms import Term, TermOutput, node_dofs
+from torchfra.fem.elements import as_tensor, gauss_quad, quad8_shape
+from torchfra.fem.mesh import Mesh
+from torchfra.fem.terms import Term, TermOutput, node_dofs
+from torchfra.params import ParameterInfo, check_parameters
 
 _COMPLIANCE = "{} compliance of the support, 1/k; null 0 = clamped (clamp the face instead of adding the term)"
 

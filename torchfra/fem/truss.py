@@ -14,9 +14,9 @@ import numpy as np
 import torch
 from torch.func import vmap
 
-from .elements import as_tensor, gauss_1d, line3_shape
-from .morph import Morphable
-from .terms import Term, TermOutput, node_dofs
+from torchfra.fem.elements import as_tensor, gauss_1d, line3_shape
+from torchfra.fem.morph import Morphable
+from torchfra.fem.terms import Term, TermOutput, node_dofs
 
 
 class Truss(Morphable, Term):

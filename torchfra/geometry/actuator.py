@@ -26,10 +26,10 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from ..fem.elements import HEX20_FACES, HEX20_NATURAL, hex20_shape
-from ..fem.mesh import Mesh
-from ..params import ParameterInfo
-from .embedding import embedding_weights, locate_points
+from torchfra.fem.elements import HEX20_FACES, HEX20_NATURAL, hex20_shape
+from torchfra.fem.mesh import Mesh
+from torchfra.geometry.embedding import embedding_weights, locate_points
+from torchfra.params import ParameterInfo
 
 __all__ = [
     "ActuatorGeometry", "GeometryError", "actuator_mesh", "build_actuator_model", "element_sets", "embedding_weights",
@@ -412,7 +412,7 @@ CAVITY_OFFSET = ParameterInfo(
 def cavity_offset_field(mesh: Mesh) -> np.ndarray:
     """Morph field of a cavity shifted along +y: 1 on the cavity surface, 0 on the outer surfaces
     (base, top and sides), harmonic in between (:func:`fem.morph.harmonic_field`)."""
-    from ..fem.morph import harmonic_field
+    from torchfra.fem.morph import harmonic_field
 
     return harmonic_field(mesh, mesh.node_set("cavity"), mesh.face_set_nodes("exterior"), (0.0, 1.0, 0.0))
 
@@ -451,7 +451,7 @@ def build_actuator_model(geom: ActuatorGeometry | None = None, formulation: str 
     front face nearest to y = 0, z = z0 + 3/4 L_c: the paper's (0, 40)) and counts ``elements``,
     ``nodes``, ``fiber_elements``, ``fiber_nodes_count``, ``dofs`` (reduced unknowns).
     """
-    from .. import fem
+    from torchfra import fem
 
     geom = (geom or ActuatorGeometry()).validate(helices=fibers is None)
     mesh = actuator_mesh(geom)

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..fem.elements import hex20_shape
-from ..fem.mesh import Mesh
+from torchfra.fem.elements import hex20_shape
+from torchfra.fem.mesh import Mesh
 
 
 def locate_points(mesh: Mesh, X: np.ndarray, tol: float = 1e-6, chunk: int = 4_000_000):

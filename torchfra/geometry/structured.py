@@ -11,8 +11,8 @@ from typing import Callable
 
 import numpy as np
 
-from ..fem.elements import HEX20_EDGES, HEX20_NATURAL
-from ..fem.mesh import Mesh
+from torchfra.fem.elements import HEX20_EDGES, HEX20_NATURAL
+from torchfra.fem.mesh import Mesh
 
 # Abaqus face number (0-based) of each side of the parameter cube.
 _SIDE_FACE = {"zmin": 0, "zmax": 1, "ymin": 2, "xmax": 3, "ymax": 4, "xmin": 5}

@@ -66,15 +66,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fem.gravity import Gravity
-from ..fem.materials import MooneyRivlin, NeoHookean
-from ..fem.model import Model
-from ..fem.pressure import CavityPressure, FollowerPressure
-from ..fem.sensor import SensorCavityPressure
-from ..fem.solid import Hex20Solid
-from ..fem.springs import ElasticSupport
-from ..fem.truss import Truss
-from .abaqus_candidates import gravity_of_solids, support_springs
+from torchfra.fem.gravity import Gravity
+from torchfra.fem.materials import MooneyRivlin, NeoHookean
+from torchfra.fem.model import Model
+from torchfra.fem.pressure import CavityPressure, FollowerPressure
+from torchfra.fem.sensor import SensorCavityPressure
+from torchfra.fem.solid import Hex20Solid
+from torchfra.fem.springs import ElasticSupport
+from torchfra.fem.truss import Truss
+from torchfra.io.abaqus_candidates import gravity_of_solids, support_springs
 
 _PRESSURES = (FollowerPressure, CavityPressure)
 

@@ -18,9 +18,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..fem.gravity import Gravity
-from ..fem.solid import Hex20Solid
-from ..fem.springs import ElasticSupport
+from torchfra.fem.gravity import Gravity
+from torchfra.fem.solid import Hex20Solid
+from torchfra.fem.springs import ElasticSupport
 
 
 def gravity_of_solids(model, values: dict[str, float]) -> dict[int, tuple[float, float, np.ndarray]]:

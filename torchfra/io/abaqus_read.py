@@ -81,15 +81,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..fem.elements import hex20_shape
-from ..fem.gravity import Gravity
-from ..fem.materials import MooneyRivlin, NeoHookean
-from ..fem.mesh import Mesh, MeshError
-from ..fem.model import Model
-from ..fem.pressure import CavityPressure, FollowerPressure, check_closed
-from ..fem.solid import Hex20Solid
-from ..fem.truss import Truss, two_node_truss
-from ..geometry.embedding import locate_points
+from torchfra.fem.elements import hex20_shape
+from torchfra.fem.gravity import Gravity
+from torchfra.fem.materials import MooneyRivlin, NeoHookean
+from torchfra.fem.mesh import Mesh, MeshError
+from torchfra.fem.model import Model
+from torchfra.fem.pressure import CavityPressure, FollowerPressure, check_closed
+from torchfra.fem.solid import Hex20Solid
+from torchfra.fem.truss import Truss, two_node_truss
+from torchfra.geometry.embedding import locate_points
 
 __all__ = ["InpError", "InpIds", "read_inp"]
 

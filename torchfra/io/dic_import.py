@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .dic import FORMATS, read_dic, read_landmarks, to_recording
-from .pressure_trace import pressure_at_frames, read_pressure_trace
+from torchfra.io.dic import FORMATS, read_dic, read_landmarks, to_recording
+from torchfra.io.pressure_trace import pressure_at_frames, read_pressure_trace
 
 
 def add_arguments(p: argparse.ArgumentParser, pressure_required: bool = False) -> None:
@@ -46,8 +46,8 @@ def import_export(export, a: argparse.Namespace, out, face=None) -> tuple[str, d
     :func:`add_arguments`) into the recording ``out``; returns a one-paragraph report and the
     ``<out>.import.json`` content. ``face``: the model face the points are registered on (a
     :mod:`torchfra.registration` face; default the actuator's front face)."""
-    from ..recordings import write_recording
-    from ..registration import Similarity, evaluate, front_face, register
+    from torchfra.recordings import write_recording
+    from torchfra.registration import Similarity, evaluate, front_face, register
 
     exclude = [a.pressure] + ([a.landmarks] if a.landmarks else [])
     if isinstance(export, (list, tuple)) and len(export) == 1:

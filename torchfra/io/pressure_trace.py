@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .tables import MAX_PREAMBLE, DicError, name_unit, read_lines, split_line, to_float
+from torchfra.io.tables import MAX_PREAMBLE, DicError, name_unit, read_lines, split_line, to_float
 
 PRESSURE_UNITS = {"pa": 1e-6, "kpa": 1e-3, "mpa": 1.0, "bar": 0.1, "mbar": 1e-4, "psi": 6.894757293168361e-3,
                   "n/mm^2": 1.0, "n/mm2": 1.0, "n/mm²": 1.0}

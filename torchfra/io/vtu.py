@@ -17,11 +17,11 @@ import meshio
 import numpy as np
 import torch
 
-from ..fem.kinematics import deformation_gradient, det3
-from ..fem.mesh import Mesh
-from ..fem.model import Model
-from ..fem.solid import Hex20Solid
-from ..fem.truss import Truss
+from torchfra.fem.kinematics import deformation_gradient, det3
+from torchfra.fem.mesh import Mesh
+from torchfra.fem.model import Model
+from torchfra.fem.solid import Hex20Solid
+from torchfra.fem.truss import Truss
 
 # Order of the 6 components of a symmetric tensor as ParaView reads them (XX, YY, ZZ, XY, YZ, XZ).
 _VOIGT = ((0, 0), (1, 1), (2, 2), (0, 1), (1, 2), (0, 2))

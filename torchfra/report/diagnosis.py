@@ -11,7 +11,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
-from .tensorboard import log_figure, open_writer
+from torchfra.report.tensorboard import log_figure, open_writer
 
 
 def _map(ax, rec, values, title, vmax):

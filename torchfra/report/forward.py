@@ -9,8 +9,8 @@ import numpy as np
 import torch
 from matplotlib.figure import Figure
 
-from ..io.vtu import element_fields, write_vtu
-from .tensorboard import log_figure, log_hparams, log_mesh, log_newton_records, open_writer
+from torchfra.io.vtu import element_fields, write_vtu
+from torchfra.report.tensorboard import log_figure, log_hparams, log_mesh, log_newton_records, open_writer
 
 TRACKED_YZ = (0.0, 40.0)  # mm: the node the paper plots (front face, top centre of the cavity span)
 

@@ -22,9 +22,9 @@ from matplotlib.figure import Figure
 from torch.utils.tensorboard import SummaryWriter
 from torch.utils.tensorboard.summary import hparams as hparams_summary
 
-from ..fem.elements import HEX20_FACES
-from ..fem.mesh import Mesh
-from ..fem.newton import Solution
+from torchfra.fem.elements import HEX20_FACES
+from torchfra.fem.mesh import Mesh
+from torchfra.fem.newton import Solution
 
 # A Quad8 face (corners 0-3, mid-edge nodes 4-7) as 6 triangles with the face's own orientation:
 # four corner triangles and the inner quad of mid-edge nodes, so curved edges show.

@@ -2,6 +2,6 @@
 
 - :mod:`.rivlin`: thick-walled incompressible Neo-Hookean tube under internal pressure, plane strain.
 """
-from .rivlin import inner_radius_for_pressure, limit_pressure, pressure_for_inner_radius
+from torchfra.verification.rivlin import inner_radius_for_pressure, limit_pressure, pressure_for_inner_radius
 
 __all__ = ["inner_radius_for_pressure", "limit_pressure", "pressure_for_inner_radius"]

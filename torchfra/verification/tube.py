@@ -38,9 +38,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .. import fem
-from ..geometry.structured import ring_sector_mesh
-from .rivlin import inner_radius_for_pressure
+from torchfra import fem
+from torchfra.geometry.structured import ring_sector_mesh
+from torchfra.verification.rivlin import inner_radius_for_pressure
 
 
 @dataclass
