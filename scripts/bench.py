@@ -49,7 +49,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's 
 from torchfra import allocator, fem  # noqa: E402
 from torchfra.fem.assembly import SparsePattern, scatter_vector  # noqa: E402
 from torchfra.fem.linsolve import Factorization, available_backends, resolve_backend  # noqa: E402
-from torchfra.geometry.structured import box_mesh  # noqa: E402
+from torchfra.fem.structured import box_mesh  # noqa: E402
 
 warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
 warnings.filterwarnings("ignore", message="Sparse invariant checks")
@@ -657,8 +657,8 @@ def forward_solution_record(sol, wall: float) -> dict:
 
 
 def forward_suite(cfg: Config, args) -> dict:
+    from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
     from torchfra.forward import ForwardConfig, member_parameters
-    from torchfra.geometry.actuator import ActuatorGeometry, build_actuator_model
 
     M = args.forward_members
     fcfg = ForwardConfig(members=M, resolution=args.mesh, load_steps=args.load_steps, threads=args.threads)
@@ -733,8 +733,8 @@ def sensitivity_suite(cfg: Config, args) -> dict:
     """One actuator solve and the exact sensitivities of its states to d parameters (C10, D1,
     E_fiber, C01, density, c_n, c_t: every candidate term switched on at its null), measured side by
     side; the fraction is what the sensitivities cost relative to the solve they come from."""
+    from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
     from torchfra.fem.sensitivity import sensitivities
-    from torchfra.geometry.actuator import ActuatorGeometry, build_actuator_model
 
     model, info = build_actuator_model(ActuatorGeometry(resolution=args.mesh), material=fem.MooneyRivlin(),
                                        base="compliant", gravity=(0.0, -1.0, 0.0))
@@ -787,9 +787,9 @@ ENSEMBLE_DEFINITIONS = {
 
 
 def ensemble_suite(cfg: Config, args) -> dict:
+    from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
     from torchfra.fem.reduced import solve_ensemble
     from torchfra.forward import ForwardConfig, member_parameters
-    from torchfra.geometry.actuator import ActuatorGeometry, build_actuator_model
     from torchfra.observe import ObservationOperator, visible_faces
 
     M = args.forward_members
@@ -889,7 +889,7 @@ def device_suite(cfg: Config, args) -> dict:
     """The brick kernel on the CPU and, when present, on CUDA, side by side (DEVICE_DEFINITIONS)."""
     import traceback
 
-    from torchfra.geometry.actuator import ActuatorGeometry, build_actuator_model
+    from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
 
     model, info = build_actuator_model(ActuatorGeometry(resolution=args.mesh))
     model.finalize()

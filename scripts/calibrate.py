@@ -29,8 +29,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-from torchfra.calibration import (SEED, CalibrationConfig, RestartRanks, forward_config, forward_dir,  # noqa: E402
-                                  run_calibration, serve_restart, validate_recording)
+from torchfra.calibration import (  # noqa: E402
+    SEED,
+    CalibrationConfig,
+    RestartRanks,
+    forward_config,
+    forward_dir,
+    run_calibration,
+    serve_restart,
+    validate_recording,
+)
 from torchfra.cli import add_deck_flags, check_deck_flags  # noqa: E402
 from torchfra.distributed import finish, ranks  # noqa: E402
 from torchfra.forward import ForwardConfig, observed_surface, run_forward  # noqa: E402

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from torchfra import fem
-from torchfra.geometry.structured import box_mesh
+from torchfra.fem.structured import box_mesh
 from torchfra.io.vtu import element_fields, write_vtu
 from torchfra.report import tensorboard as tb
 

@@ -39,9 +39,8 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from torchfra import fem  # noqa: E402
-from torchfra.geometry.actuator import ActuatorGeometry, build_actuator_model  # noqa: E402
-from torchfra.scenarios import (BULK_RATIO, E_FIBER, PRESSURE_MAX, elastic_frames, face_observer,  # noqa: E402
-                               pressure_trace)
+from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model  # noqa: E402
+from torchfra.scenarios import BULK_RATIO, E_FIBER, PRESSURE_MAX, elastic_frames, face_observer, pressure_trace  # noqa: E402
 
 
 def main() -> None:

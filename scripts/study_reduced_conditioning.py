@@ -36,9 +36,9 @@ import torch
 from tqdm import tqdm
 
 from torchfra import fem
+from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
 from torchfra.fem.reduced import build_reduced, select_snapshots, solve_reduced
 from torchfra.forward import ForwardConfig, member_parameters
-from torchfra.geometry.actuator import ActuatorGeometry, build_actuator_model
 from torchfra.report.tensorboard import open_writer
 
 

@@ -3,7 +3,7 @@
     python scripts/study_viscoelastic.py [--resolution 1] [--g1 0.05 0.15 0.4] [--tau1 0.1]
 
 The proof suite's viscoelastic recordings (``scenarios.py``, effect ``viscoelasticity``) and the
-diagnosis' candidate (``torchfra.history``) both describe a creeping body by the correspondence
+diagnosis' candidate (``torchfra.actuator.history``) both describe a creeping body by the correspondence
 principle: the relaxed elastic body at an effective load level ``mu(t)``, exact for a linear body.
 This study measures what that approximation leaves out at finite strain. For the paper's actuator
 (C10 0.0062 MPa, 0.022 MPa, the suite's 20-frame load-unload cycle, body at rest at t = 0, tau1 in
@@ -34,10 +34,9 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from torchfra import fem  # noqa: E402
-from torchfra.geometry.actuator import ActuatorGeometry, build_actuator_model  # noqa: E402
-from torchfra.history import creep_load  # noqa: E402
-from torchfra.scenarios import (BULK_RATIO, E_FIBER, PRESSURE_MAX, elastic_frames, face_observer,  # noqa: E402
-                               pressure_trace)
+from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model  # noqa: E402
+from torchfra.actuator.history import creep_load  # noqa: E402
+from torchfra.scenarios import BULK_RATIO, E_FIBER, PRESSURE_MAX, elastic_frames, face_observer, pressure_trace  # noqa: E402
 
 
 def main() -> None:

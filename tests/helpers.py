@@ -9,7 +9,7 @@ import torch
 
 from torchfra import fem
 from torchfra.fem.elements import HEX20_FACES
-from torchfra.geometry.structured import box_mesh
+from torchfra.fem.structured import box_mesh
 
 
 def assemble_dense(term, u, params, lam, n_dofs):

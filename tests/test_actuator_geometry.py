@@ -11,12 +11,18 @@ import pytest
 import torch
 
 from torchfra import fem
+from torchfra.actuator.geometry import (
+    ActuatorGeometry,
+    GeometryError,
+    actuator_mesh,
+    build_actuator_model,
+    embedding_weights,
+    fiber_mesh,
+    helix_points,
+    locate_points,
+)
 from torchfra.fem.elements import gauss_1d, line3_shape
 from torchfra.fem.pressure import check_closed
-from torchfra.geometry.actuator import (
-    ActuatorGeometry, GeometryError, actuator_mesh, build_actuator_model, embedding_weights, fiber_mesh,
-    helix_points, locate_points,
-)
 
 PAPER = ActuatorGeometry()
 

@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from torchfra import fem
+from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
 from torchfra.fem.constraints import rotation_matrix
-from torchfra.geometry.actuator import ActuatorGeometry, build_actuator_model
 
 KAPPA_T = 0.005615
 LOADS = [0.25, 0.5, 0.75, 1.0]

@@ -8,8 +8,8 @@ import torch
 
 from torchfra import fem
 from torchfra.fem.elements import hex20_shape
-from torchfra.geometry.embedding import locate_points
-from torchfra.geometry.structured import box_mesh
+from torchfra.fem.embedding import locate_points
+from torchfra.fem.structured import box_mesh
 
 
 def test_embedded_two_node_trusses_store_the_closed_form_energy():

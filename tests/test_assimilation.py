@@ -8,8 +8,15 @@ import numpy as np
 import pytest
 import torch
 
-from torchfra.assimilation import (LinearSlave, PolynomialSlave, SweepMap, analysis, grid_posterior,
-                                   hierarchical_filter, sequential_filter)
+from torchfra.assimilation import (
+    LinearSlave,
+    PolynomialSlave,
+    SweepMap,
+    analysis,
+    grid_posterior,
+    hierarchical_filter,
+    sequential_filter,
+)
 
 
 def _problem(N=50, d=2, m=30, seed=0):

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from torchfra import fem
-from torchfra.geometry.structured import box_mesh
+from torchfra.fem.structured import box_mesh
 
 
 @pytest.fixture

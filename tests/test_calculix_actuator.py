@@ -10,10 +10,10 @@ each Line3 fiber as the two straight trusses of the deck.
 
 import numpy as np
 import torch
-
 from helpers import load_script
+
 from torchfra import fem
-from torchfra.geometry.actuator import ActuatorGeometry
+from torchfra.actuator.geometry import ActuatorGeometry
 from torchfra.io.abaqus import run_calculix
 
 GEOMETRY = ActuatorGeometry(resolution=1, length=20.0, endcap_base=5.0, endcap_top=5.0, pitch_deg=10.0)

@@ -10,10 +10,10 @@ discretize one problem, so they must agree to solver tolerance; CalculiX prints 
 import numpy as np
 import pytest
 import torch
-
 from helpers import block_with_cavity
+
 from torchfra import fem
-from torchfra.geometry.structured import box_mesh
+from torchfra.fem.structured import box_mesh
 from torchfra.io.abaqus import run_calculix, write_inp
 
 LENGTH = 12.0

@@ -15,14 +15,13 @@ References (each evaluated here in numpy, independently of the element code):
 - Pressure sensor: scaling invariance psi(s C10) = s psi(C10) when K and E_fiber scale with C10.
 """
 import numpy as np
-import pytest
 import torch
+from helpers import block_with_cavity
 from scipy.optimize import brentq
 
-from helpers import block_with_cavity
 from torchfra import fem
-from torchfra.geometry.embedding import embedding_weights
-from torchfra.geometry.structured import box_mesh
+from torchfra.fem.embedding import embedding_weights
+from torchfra.fem.structured import box_mesh
 
 TIGHT = fem.NewtonOptions(rtol=1e-10, etol=1e-18)
 
@@ -299,7 +298,8 @@ def test_candidates_at_null_reproduce_the_base_model():
     """The sensor-test block with Mooney-Rivlin (with_material), the pressure sensor
     (with_pressure_sensor) and gravity added, all at the catalogue's null values, solves to the base
     model's displacements (Neo-Hookean closed-form path vs Mooney-Rivlin derived path: round-off)."""
-    from torchfra.fem.candidates import CANDIDATES, with_material, with_pressure_sensor
+    from torchfra.actuator.candidates import CANDIDATES
+    from torchfra.fem.transforms import with_material, with_pressure_sensor
 
     def build():
         model = _sensor_model()

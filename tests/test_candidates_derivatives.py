@@ -10,11 +10,11 @@ import math
 import numpy as np
 import pytest
 import torch
-
 from helpers import block_with_cavity
+
 from torchfra import fem
-from torchfra.geometry.structured import box_mesh
-from torchfra.params import ParameterError, ParameterInfo
+from torchfra.fem.params import ParameterError, ParameterInfo
+from torchfra.fem.structured import box_mesh
 
 H = 1e-6
 TOL = 1e-6
@@ -196,7 +196,7 @@ def test_registry_entries(cls, name):
 
 
 def test_catalogue_names_and_nulls():
-    from torchfra.fem.candidates import CANDIDATES
+    from torchfra.actuator.candidates import CANDIDATES
 
     nulls = {name: c.null_values() for name, c in CANDIDATES.items()}
     assert nulls == {

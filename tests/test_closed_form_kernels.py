@@ -6,7 +6,7 @@ import torch
 from torch.func import grad, jacfwd, vmap
 
 from torchfra import fem
-from torchfra.geometry.actuator import ActuatorGeometry, build_actuator_model
+from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
 
 
 def model():

@@ -12,7 +12,6 @@ import json
 import numpy as np
 import pytest
 import torch
-
 from channel_deck import channel_deck
 from helpers import load_script
 

@@ -16,12 +16,12 @@ import json
 import numpy as np
 import pytest
 import torch
-
 from helpers import load_script
+
 from torchfra import fem
 from torchfra.discovery import DiagnosisError, diagnose
 from torchfra.fem.elements import HEX20_FACES  # noqa: F401  (face numbering of the deck's surfaces)
-from torchfra.geometry.structured import box_mesh
+from torchfra.fem.structured import box_mesh
 from torchfra.io.abaqus import write_inp
 from torchfra.io.abaqus_read import read_inp
 from torchfra.observe import ObservationOperator, visible_faces

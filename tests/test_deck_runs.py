@@ -8,9 +8,8 @@ import json
 import numpy as np
 import pytest
 import torch
-
-from test_read_inp import HAND_DECK
 from helpers import load_script
+from test_read_inp import HAND_DECK
 
 from torchfra.forward import ForwardConfig, observed_faces, read_deck, run_forward, with_deck
 from torchfra.io.abaqus_read import read_inp

@@ -7,12 +7,13 @@ import meshio
 import numpy as np
 import pytest
 import torch
+from helpers import load_script
 
 from torchfra import fem
-from torchfra.geometry.structured import box_mesh
+from torchfra.fem.structured import box_mesh
 from torchfra.io.vtu import element_fields, write_vtu
-from helpers import load_script
 from torchfra.report.tensorboard import boundary_triangles
+
 
 def _load_demo():
     return load_script("fem_demo")

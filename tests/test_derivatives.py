@@ -6,10 +6,10 @@ Reference: central differences with step h = 1e-6 mm; their truncation + round-o
 import numpy as np
 import pytest
 import torch
-
 from helpers import assemble_dense, block_with_cavity
+
 from torchfra import fem
-from torchfra.geometry.structured import box_mesh
+from torchfra.fem.structured import box_mesh
 
 H = 1e-6
 TOL = 1e-6

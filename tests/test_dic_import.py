@@ -7,10 +7,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from helpers import load_script
+
+from torchfra.actuator.geometry import ActuatorGeometry, actuator_mesh
 from torchfra.calibration import recording_operator
-from torchfra.geometry.actuator import ActuatorGeometry, actuator_mesh
 from torchfra.io.dic import DicError, frame_numbers, read_dic, read_frame, read_landmarks
 from torchfra.io.pressure_trace import pressure_at_frames, read_pressure_trace
 from torchfra.recordings import Recording, read_recording

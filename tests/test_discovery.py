@@ -12,16 +12,27 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
+from helpers import assert_same_json
 
 from torchfra import fem
 from torchfra.calibration import synthetic_recording
-from torchfra.discovery import (ALL_CANDIDATES, NOISE_FLOOR_MM, DiagnosisError, NoiseModel, Whitener, consistency,
-                                diagnose, discretization_error, estimate_noise, locate, model_floor, quiet_triples, rank)
+from torchfra.discovery import (
+    ALL_CANDIDATES,
+    NOISE_FLOOR_MM,
+    DiagnosisError,
+    NoiseModel,
+    Whitener,
+    consistency,
+    diagnose,
+    discretization_error,
+    estimate_noise,
+    locate,
+    model_floor,
+    quiet_triples,
+    rank,
+)
 from torchfra.physics import COORDINATES
 from torchfra.recordings import Recording
-
-from helpers import assert_same_json
 
 DATA = Path(__file__).parent / "data"
 
@@ -703,8 +714,9 @@ def test_below_the_floor_the_meshs_error_is_taken_out_before_the_tests(tmp_path,
     refinement is replaced by one returning it (the estimate itself is tested by
     test_the_mesh_error_estimate_takes_a_finer_recordings_discretization_out; the rate this gives on
     real resolution-2 nulls, 0.5-1.2 % at every noise, is measured by scripts/study_noise_floor.py)."""
-    import torchfra.discovery as discovery
     from scipy import stats
+
+    import torchfra.discovery as discovery
 
     times = np.arange(1, 9) / 8
     rec, clean = synthetic_recording(0.006, resolution=1, points="4.0", noise=0.0, times=times)
@@ -747,6 +759,7 @@ def test_diagnose_script_says_what_it_did_below_the_floor(tmp_path, monkeypatch,
     what to do. The diagnosis itself is replaced by one returning such a result (the step is tested
     by test_below_the_floor_the_meshs_error_is_taken_out_before_the_tests)."""
     from helpers import load_script
+
     from torchfra.recordings import write_recording
 
     script = load_script("diagnose")

@@ -11,8 +11,8 @@ import torch
 from torch.func import jvp
 
 from torchfra import fem
-from torchfra.geometry.actuator import ActuatorGeometry, build_actuator_model, helix_points
-from torchfra.observe import ObservationOperator, visible_faces
+from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model, helix_points
+from torchfra.observe import visible_faces
 
 C10 = 0.0068
 PARAMS = {"C10": C10, "D1": 1.0 / (1000.0 * C10), "E_fiber": 31000.0, "P": 0.022}
@@ -207,7 +207,7 @@ def test_the_diagnosis_sees_the_pitch_through_a_secant():
     hundreds of times larger."""
     import math
 
-    from torchfra.geometry.actuator import actuator_mesh
+    from torchfra.actuator.geometry import actuator_mesh
     from torchfra.observe import regular_grid
     from torchfra.physics import SECANT_STEPS, ActuatorPhysics
     from torchfra.recordings import Recording

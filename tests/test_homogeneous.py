@@ -11,7 +11,7 @@ import torch
 from scipy.optimize import brentq
 
 from torchfra import fem
-from torchfra.geometry.structured import box_mesh
+from torchfra.fem.structured import box_mesh
 
 TIGHT = fem.NewtonOptions(rtol=1e-10, etol=1e-18)
 

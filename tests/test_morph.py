@@ -11,15 +11,15 @@ The actuator's cavity offset morphed vs re-meshed (discretization error) is meas
 import numpy as np
 import pytest
 import torch
-
 from helpers import block_with_cavity
+
 from torchfra import fem
+from torchfra.actuator.geometry import CAVITY_OFFSET, ActuatorGeometry, build_actuator_model, cavity_offset_field
+from torchfra.fem.embedding import embedding_weights
 from torchfra.fem.morph import MorphError, harmonic_field, inverted_elements
+from torchfra.fem.params import ParameterError, ParameterInfo
 from torchfra.fem.sensitivity import residual_derivative, sensitivities
-from torchfra.geometry.actuator import CAVITY_OFFSET, ActuatorGeometry, build_actuator_model, cavity_offset_field
-from torchfra.geometry.embedding import embedding_weights
 from torchfra.io.vtu import element_fields
-from torchfra.params import ParameterError, ParameterInfo
 
 TIGHT = fem.NewtonOptions(rtol=1e-12, etol=1e-20, stagnation_tol=1e-11)
 HEIGHT = 3.0

@@ -4,11 +4,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-
 from helpers import block_with_cavity
+
 from torchfra import fem
 from torchfra.fem.elements import HEX20_FACES, quad8_shape
-from torchfra.geometry.structured import box_mesh, ring_sector_mesh
+from torchfra.fem.structured import box_mesh, ring_sector_mesh
 from torchfra.observe import (
     ObservationError,
     ObservationOperator,

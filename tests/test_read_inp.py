@@ -6,11 +6,11 @@ import re
 import numpy as np
 import pytest
 import torch
-
 from helpers import block_with_cavity
+
 from torchfra import fem
-from torchfra.geometry.embedding import embedding_weights
-from torchfra.geometry.structured import box_mesh
+from torchfra.fem.embedding import embedding_weights
+from torchfra.fem.structured import box_mesh
 from torchfra.io.abaqus import write_inp
 from torchfra.io.abaqus_read import InpError, read_inp
 
@@ -349,7 +349,7 @@ def test_the_actuator_deck_round_trips(tmp_path):
     """The paper's actuator (resolution 1: hybrid full-integration bricks, embedded 3-node fiber
     helices tied by *EQUATION, closed-cavity pressure, clamped base, rigid top) written by write_inp
     and read back: same parameters and the same residual at a random state (measured 3e-16)."""
-    from torchfra.geometry.actuator import ActuatorGeometry, build_actuator_model
+    from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
 
     model, _ = build_actuator_model(ActuatorGeometry(resolution=1))
     params = {"C10": 0.0048, "D1": 1 / (1000 * 0.0048), "E_fiber": 31000.0, "P": 0.022}

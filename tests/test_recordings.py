@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
+from torchfra.actuator.geometry import ActuatorGeometry, actuator_mesh
 from torchfra.calibration import forecast_at_frames, load_factors, recording_operator
-from torchfra.geometry.actuator import ActuatorGeometry, actuator_mesh
 from torchfra.recordings import Recording, RecordingError, read_recording, write_recording
 
 HEADER = "frame,time,pressure,point_id,X,Y,Z,uy,uz\n"

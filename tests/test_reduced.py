@@ -8,8 +8,8 @@ varying across members, so the method is checked beyond the one-parameter P/C10 
 import numpy as np
 import pytest
 import torch
-
 from test_sensitivity import THETA, every_candidate_model
+
 from torchfra import fem
 from torchfra.fem.reduced import ReducedBasis, build_reduced, select_snapshots, solve_ensemble, solve_reduced
 

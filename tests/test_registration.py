@@ -2,10 +2,19 @@
 import numpy as np
 import pytest
 
-from torchfra.geometry.actuator import ActuatorGeometry
-from torchfra.geometry.structured import box_mesh
-from torchfra.registration import (PlaneFace, RegistrationError, SampleFace, Similarity, evaluate, front_face,
-                                   mesh_face, register, umeyama)
+from torchfra.actuator.geometry import ActuatorGeometry
+from torchfra.fem.structured import box_mesh
+from torchfra.registration import (
+    PlaneFace,
+    RegistrationError,
+    SampleFace,
+    Similarity,
+    evaluate,
+    front_face,
+    mesh_face,
+    register,
+    umeyama,
+)
 
 NORMAL = np.array([1.0, 0.0, 0.0])
 CORNERS = np.array([[8.0, -8.0, 0.0], [8.0, 8.0, 0.0], [8.0, 8.0, 60.0], [8.0, -8.0, 60.0]])

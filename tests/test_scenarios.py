@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchfra import fem, scenarios
-from torchfra.geometry.actuator import ActuatorGeometry, actuator_mesh, build_actuator_model
+from torchfra.actuator.geometry import ActuatorGeometry, actuator_mesh, build_actuator_model
 from torchfra.observe import ObservationOperator, visible_faces
 
 FAST = dict(resolution=1, frames=3, truth_c10=0.0062)
@@ -244,9 +244,8 @@ def test_pooled_table_counts_each_recording_once_and_bounds_every_rate_exactly(t
     scipy.stats.binomtest's interval in between); a file that is no suite's results is named."""
     import json
 
-    from scipy.stats import binomtest
-
     from helpers import load_script
+    from scipy.stats import binomtest
 
     suite = load_script("scenarios")
     assert suite.rate_bound(6, 6, "lower") == pytest.approx(0.05 ** (1 / 6), rel=1e-9)  # 60.7 %

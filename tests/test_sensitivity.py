@@ -9,11 +9,11 @@ sensitivity of that parameter).
 import numpy as np
 import pytest
 import torch
-
 from helpers import block_with_cavity
+
 from torchfra import fem
+from torchfra.fem.embedding import embedding_weights
 from torchfra.fem.sensitivity import residual_derivative, sensitivities
-from torchfra.geometry.embedding import embedding_weights
 
 TIGHT = fem.NewtonOptions(rtol=1e-12, etol=1e-20, stagnation_tol=1e-11)
 LOADS = [0.5, 1.0]

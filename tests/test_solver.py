@@ -1,12 +1,11 @@
 """Solver-level checks: pressure forms agree, batches equal separate solves, rigid faces stay rigid,
 failing members are reported while the others finish."""
 import numpy as np
-import pytest
 import torch
-
 from helpers import assemble_dense, block_with_cavity
+
 from torchfra import fem
-from torchfra.geometry.structured import box_mesh
+from torchfra.fem.structured import box_mesh
 
 
 def test_cavity_volume_closed_form():

@@ -1,4 +1,4 @@
-"""The viscoelastic candidate (``torchfra.history``): creep of the whole body on the frame-to-load map.
+"""The viscoelastic candidate (``torchfra.actuator.history``): creep of the whole body on the frame-to-load map.
 
 References: the creep convolution mu(t) = int J(t - s) dlambda(s), J(t) = 1 - g1 exp(-t / tau_c),
 tau_c = tau1 / (1 - g1), in closed form for a step, a ramp and a triangular load-unload cycle
@@ -9,12 +9,11 @@ import math
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 import torch
 
-import scipy.sparse as sp
-
-from torchfra.history import creep_load, normalized_time
-from torchfra.physics import (CANDIDATE_PARAMETERS, HISTORY_DEPENDENT_CANDIDATES, LOAD_MAP_ONLY, ActuatorPhysics)
+from torchfra.actuator.history import creep_load, normalized_time
+from torchfra.physics import CANDIDATE_PARAMETERS, HISTORY_DEPENDENT_CANDIDATES, LOAD_MAP_ONLY, ActuatorPhysics
 from torchfra.recordings import Recording
 
 D = torch.float64
@@ -242,10 +241,9 @@ def test_actuator_physics_creep_shares_the_base_solve_and_its_sensitivities_are_
     """ActuatorPhysics with viscoelasticity on a load-unload cycle (resolution 1): g1 = 0 reproduces the
     base model bitwise; changing g1 or tau1 solves nothing (they act on the frames' load factors only);
     dY/dg1 and dY/dlog tau1 match central differences of the observations (reference)."""
-    from torchfra.physics import ActuatorPhysics as Real
-
-    from torchfra.geometry.actuator import ActuatorGeometry, actuator_mesh
+    from torchfra.actuator.geometry import ActuatorGeometry, actuator_mesh
     from torchfra.observe import regular_grid, visible_faces
+    from torchfra.physics import ActuatorPhysics as Real
 
     mesh = actuator_mesh(ActuatorGeometry(resolution=1))
     X = regular_grid(mesh, visible_faces(mesh, (1.0, 0.0, 0.0)), 4.0)

@@ -19,13 +19,12 @@ References:
 import numpy as np
 import pytest
 import torch
-
 from helpers import block_with_cavity
+
 from torchfra import fem
-from torchfra.fem.newton import _Packing
+from torchfra.fem.params import ParameterError
+from torchfra.fem.structured import box_mesh
 from torchfra.fem.viscoelastic import HISTORY_ROW, solve_history, time_increments, with_viscoelasticity
-from torchfra.geometry.structured import box_mesh
-from torchfra.params import ParameterError
 
 TIGHT = fem.NewtonOptions(rtol=1e-11, etol=1e-20)
 L = 2.0
@@ -279,10 +278,10 @@ def test_the_diagnosis_creeping_body_on_the_fe_history_model():
       the forward-difference sensitivities are finite and nonzero for every parameter."""
     import math
 
+    from torchfra.actuator.geometry import ActuatorGeometry, actuator_mesh
     from torchfra.physics import ActuatorPhysics, HistoryPhysics
     from torchfra.recordings import Recording
     from torchfra.scenarios import dic_grid
-    from torchfra.geometry.actuator import ActuatorGeometry, actuator_mesh
 
     mesh = actuator_mesh(ActuatorGeometry(resolution=1))
     X = dic_grid(mesh, 6.0)

@@ -33,7 +33,7 @@ tau1 (duration)    log       log tau1 ~ N(log 0.1, 1.5^2)     (none: see below) 
 pressure_lag       linear    N(0, 0.05^2), in [-0.2, 0.2]     0                       (viscoelasticity's rival)
 =================  ========  ===============================  ======================  =============
 
-Viscoelasticity (:mod:`torchfra.history`) acts on the frame-to-load map only, like the pressure
+Viscoelasticity (:mod:`torchfra.actuator.history`) acts on the frame-to-load map only, like the pressure
 sensor: the body creeps, and each frame is read off the relaxed (elastic) model at its effective
 load level. Its parameters need no FE solve of their own (solves are keyed by the parameters the FE
 model sees). ``tau1`` has no null: at ``g1 = 0`` it has no effect, so the score test of the
@@ -54,10 +54,10 @@ import numpy as np
 import torch
 
 from torchfra import fem
-from torchfra.fem.candidates import fiber_pitch_parameter
+from torchfra.actuator.candidates import fiber_pitch_parameter
+from torchfra.actuator.geometry import CAVITY_OFFSET, ActuatorGeometry, build_actuator_model
+from torchfra.actuator.history import G1, LAG, TAU1, creep_load, delayed_load, normalized_time
 from torchfra.fem.sensitivity import sensitivities
-from torchfra.geometry.actuator import CAVITY_OFFSET, ActuatorGeometry, build_actuator_model
-from torchfra.history import G1, LAG, TAU1, creep_load, delayed_load, normalized_time
 from torchfra.observe import ObservationError, ObservationOperator, visible_faces
 from torchfra.recordings import Recording, RecordingError
 
@@ -277,7 +277,7 @@ class ActuatorPhysics:
             raise ValueError(f"candidate {c!r} on the deck {self.deck.path}: {why}")
         model, _ = read_inp(self.deck.path)
         if material is not None:
-            from torchfra.fem.candidates import with_material
+            from torchfra.fem.transforms import with_material
 
             with_material(model, material)
         if "gravity" in self.candidates:

@@ -270,7 +270,7 @@ class ParameterSet:
     def build_model(self, resolution: int, integration: str = "full"):
         """The actuator model with the candidates these parameters need, and its info."""
         from torchfra import fem
-        from torchfra.geometry.actuator import ActuatorGeometry, build_actuator_model
+        from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
         from torchfra.physics import GRAVITY_DIRECTION
 
         on = self.candidates()

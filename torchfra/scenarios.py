@@ -8,7 +8,7 @@ at the points of a DIC-like grid, plus noise. The diagnosis is told nothing abou
 Effects (``EFFECTS``; size k = 1, 2, 3 picks the tabled value of the knob, size 0 its null):
 
 - null: ``none``, the base model itself (several truth C10 values make several nulls).
-- in the candidate library (``fem.candidates``): ``mooney_rivlin`` (knob C01, MPa), ``compressibility``
+- in the candidate library (``actuator.candidates``): ``mooney_rivlin`` (knob C01, MPa), ``compressibility``
   (bulk ratio k, D1 = 1/(k C10); null 1000), ``fiber_stiffness`` (E_fiber, MPa; null 31000), ``gravity``
   (density, t/mm^3, direction -y; the weight ramps with the load factor like every load term of the
   library, full weight at the largest pressure), ``compliant_base`` (c_n = c_t = c, mm^3/N, springs
@@ -101,8 +101,8 @@ import numpy as np
 import torch
 
 from torchfra import fem
+from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
 from torchfra.fem.materials import Material, ParameterError
-from torchfra.geometry.actuator import ActuatorGeometry, build_actuator_model
 from torchfra.observe import ObservationOperator, frame_times, regular_grid, visible_faces
 from torchfra.recordings import Recording
 

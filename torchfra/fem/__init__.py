@@ -20,6 +20,7 @@ from torchfra.fem.sensor import SensorCavityPressure
 from torchfra.fem.solid import Hex20Solid
 from torchfra.fem.springs import ElasticSupport, support_face
 from torchfra.fem.terms import Term, TermOutput
+from torchfra.fem.transforms import with_material, with_pressure_sensor
 from torchfra.fem.truss import Truss, two_node_truss
 from torchfra.fem.viscoelastic import HistorySolution, ViscousOverstress, solve_history, with_viscoelasticity
 
@@ -28,4 +29,5 @@ __all__ = [
     "Mesh", "MeshError", "Model", "MooneyRivlin", "NeoHookean", "NewtonOptions", "ParameterError",
     "SensorCavityPressure", "Solution", "Term", "TermOutput", "Truss", "rotation_matrix", "solve", "two_node_truss",
     "support_face", "WarmStart", "HistorySolution", "ViscousOverstress", "solve_history", "with_viscoelasticity",
+    "with_material", "with_pressure_sensor",
 ]

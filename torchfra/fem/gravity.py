@@ -20,8 +20,8 @@ from torch.func import grad, vmap
 from torchfra.fem.elements import as_tensor, gauss_hex, hex20_shape
 from torchfra.fem.mesh import Mesh
 from torchfra.fem.morph import Morphable
+from torchfra.fem.params import ParameterInfo, check_parameters
 from torchfra.fem.terms import Term, TermOutput, node_dofs
-from torchfra.params import ParameterInfo, check_parameters
 
 STANDARD_GRAVITY = 9.81e3  # mm/s^2
 

@@ -8,7 +8,7 @@ material they sit in), and every member of an ensemble needs its own fiber embed
 :class:`FiberPitch` winds, for every member, the same Line3 trusses as the base model (the same
 count per helix, nodes on the helix at equal arc length, 2-point Gauss, Green strain: ``fem.Truss``)
 at the member's pitch ``alpha``, embeds their nodes in the bricks that host them at that pitch
-(``u_node = sum_a N_a(xi) u_a``, ``geometry.embedding.locate_points``) and adds
+(``u_node = sum_a N_a(xi) u_a``, ``fem.embedding.locate_points``) and adds
 
     W_alpha(u) - W_alpha0(u),
 
@@ -42,8 +42,8 @@ import torch
 
 from torchfra.fem.elements import as_tensor, gauss_1d, hex20_shape, hex20_shape_values, line3_shape
 from torchfra.fem.mesh import Mesh
+from torchfra.fem.params import ParameterInfo, check_parameters
 from torchfra.fem.terms import Term, TermOutput
-from torchfra.params import ParameterInfo, check_parameters
 
 PITCH_RANGE_DEG = (1.0, 4.0)
 
@@ -81,7 +81,7 @@ class FiberPitch(Term):
     mesh: the Hex20 mesh the fibers are embedded in; ``center`` (x, y) of the helix axis (along z),
     ``radius``, ``z_range`` (z0, z1); ``start_deg``: both helices' angle at z0 about the axis from +x
     (helix 0 winds counter-clockwise seen from +z as z grows, helix 1 clockwise, as
-    ``geometry.actuator.helix_points``); ``elements_per_helix``: the base model's Line3 count per
+    ``actuator.geometry.helix_points``); ``elements_per_helix``: the base model's Line3 count per
     helix; ``area`` (mm^2) and ``modulus`` (the fibers' Young's modulus parameter) as its trusses'."""
 
     kind = "internal"
@@ -166,7 +166,7 @@ class FiberPitch(Term):
         if alpha in self._cache:
             self._cache.move_to_end(alpha)
             return self._cache[alpha]
-        from torchfra.geometry.embedding import locate_points
+        from torchfra.fem.embedding import locate_points
 
         X = self._nodes_numpy(alpha)
         host, xi = locate_points(self.mesh, X)

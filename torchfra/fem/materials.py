@@ -17,7 +17,7 @@ import torch
 from torch.func import grad, jacfwd, jvp, vmap
 
 from torchfra.fem.kinematics import cofactor, det3
-from torchfra.params import ParameterError, ParameterInfo, check_parameters
+from torchfra.fem.params import ParameterError, ParameterInfo, check_parameters
 
 __all__ = ["GaussPointTangent", "Material", "MooneyRivlin", "NeoHookean", "ParameterError", "PointDerivatives"]
 

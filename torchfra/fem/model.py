@@ -248,7 +248,7 @@ class Model:
             t.validate(params)
         infos = {name: info for name, (_, info) in self._morphs.items() if info is not None}
         if infos:
-            from torchfra.params import check_parameters
+            from torchfra.fem.params import check_parameters
 
             check_parameters(infos, params, "the model's morph")
         return n.pop()

@@ -25,8 +25,8 @@ import math
 import torch
 
 from torchfra.fem.mesh import Mesh
+from torchfra.fem.params import ParameterInfo, check_parameters
 from torchfra.fem.pressure import CavityPressure
-from torchfra.params import ParameterInfo, check_parameters
 
 
 class SensorCavityPressure(CavityPressure):

@@ -21,14 +21,13 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 from torch.func import hessian, vmap
 
 from torchfra.fem.elements import as_tensor, gauss_quad, quad8_shape
 from torchfra.fem.mesh import Mesh
+from torchfra.fem.params import ParameterInfo, check_parameters
 from torchfra.fem.terms import Term, TermOutput, node_dofs
-from torchfra.params import ParameterInfo, check_parameters
 
 _COMPLIANCE = "{} compliance of the support, 1/k; null 0 = clamped (clamp the face instead of adding the term)"
 

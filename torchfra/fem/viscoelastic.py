@@ -48,9 +48,9 @@ from torchfra.fem.kinematics import cofactor, deformation_gradient
 from torchfra.fem.materials import NeoHookean
 from torchfra.fem.model import Model
 from torchfra.fem.newton import CONVERGED, DIVERGED, NewtonOptions, WarmStart, _Packing, solve
+from torchfra.fem.params import ParameterError, ParameterInfo, check_parameters
 from torchfra.fem.solid import Hex20Solid, _material_tangent, _nodal_forces
 from torchfra.fem.terms import Term, TermOutput
-from torchfra.params import ParameterError, ParameterInfo, check_parameters
 
 HISTORY_ROW = "history_row"  # bookkeeping parameter: each member's row in the history store
 

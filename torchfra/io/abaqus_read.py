@@ -82,6 +82,7 @@ import numpy as np
 import torch
 
 from torchfra.fem.elements import hex20_shape
+from torchfra.fem.embedding import locate_points
 from torchfra.fem.gravity import Gravity
 from torchfra.fem.materials import MooneyRivlin, NeoHookean
 from torchfra.fem.mesh import Mesh, MeshError
@@ -89,7 +90,6 @@ from torchfra.fem.model import Model
 from torchfra.fem.pressure import CavityPressure, FollowerPressure, check_closed
 from torchfra.fem.solid import Hex20Solid
 from torchfra.fem.truss import Truss, two_node_truss
-from torchfra.geometry.embedding import locate_points
 
 __all__ = ["InpError", "InpIds", "read_inp"]
 

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 
 from torchfra import fem
-from torchfra.geometry.structured import ring_sector_mesh
+from torchfra.fem.structured import ring_sector_mesh
 from torchfra.verification.rivlin import inner_radius_for_pressure
 
 

@@ -44,7 +44,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from torchfra.params import ParameterInfo
+from torchfra.fem.params import ParameterInfo
 
 G1 = ParameterInfo("g1", "1", 0.0, 0.0, 0.95,
                    "Prony relaxation fraction g1 (Abaqus *VISCOELASTIC, TIME=PRONY): the instantaneous moduli "

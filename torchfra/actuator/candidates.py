@@ -32,27 +32,21 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from torchfra.actuator.geometry import CAVITY_OFFSET, ActuatorGeometry
 from torchfra.fem.gravity import Gravity
 from torchfra.fem.helix import pitch_parameter
-from torchfra.fem.materials import Material, MooneyRivlin, NeoHookean
-from torchfra.fem.model import Model
-from torchfra.fem.pressure import CavityPressure
+from torchfra.fem.materials import MooneyRivlin, NeoHookean
+from torchfra.fem.params import ParameterInfo
 from torchfra.fem.sensor import SensorCavityPressure
-from torchfra.fem.solid import Hex20Solid
 from torchfra.fem.springs import ElasticSupport
-from torchfra.params import ParameterInfo
 
 
 def fiber_pitch_parameter() -> ParameterInfo:
     """The pitch candidate's registry entry, null at the actuator geometry's drawn pitch."""
-    from torchfra.geometry.actuator import ActuatorGeometry
-
     return pitch_parameter(ActuatorGeometry().pitch_deg)
 
 
 def _cavity_offset_parameter() -> ParameterInfo:
-    from torchfra.geometry.actuator import CAVITY_OFFSET
-
     return CAVITY_OFFSET
 
 
@@ -90,31 +84,3 @@ CANDIDATES = {
                   "where they fall)", (fiber_pitch_parameter(),)),
     )
 }
-
-
-def _unfinalized(model: Model) -> None:
-    if model.dofmap is not None:
-        raise RuntimeError("the model is finalized; swap terms before the first solve or evaluation")
-
-
-def with_material(model: Model, material: Material) -> Model:
-    """Give every solid body of an unfinalized model ``material`` (same elements, formulation and
-    integration); returns the model."""
-    _unfinalized(model)
-    for k, t in enumerate(model.terms):
-        if isinstance(t, Hex20Solid):
-            model.terms[k] = Hex20Solid(model.mesh, material, t.formulation, t.element_ids, t.integration,
-                                        dtype=model.dtype)
-    return model
-
-
-def with_pressure_sensor(model: Model, gain: str = "pressure_gain", offset: str = "pressure_offset") -> Model:
-    """Replace every ``CavityPressure`` of an unfinalized model by a ``SensorCavityPressure`` on the same
-    cavity, recorded-pressure parameter and face rule; returns the model."""
-    _unfinalized(model)
-    for k, t in enumerate(model.terms):
-        if type(t) is CavityPressure:
-            rule = round(t.w.numel() ** 0.5)
-            model.terms[k] = SensorCavityPressure(model.mesh, t.face_set, t.pressure, gain, offset, rule,
-                                                  dtype=model.dtype)
-    return model

@@ -27,9 +27,9 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from torchfra.fem.elements import HEX20_FACES, HEX20_NATURAL, hex20_shape
+from torchfra.fem.embedding import embedding_weights, locate_points
 from torchfra.fem.mesh import Mesh
-from torchfra.geometry.embedding import embedding_weights, locate_points
-from torchfra.params import ParameterInfo
+from torchfra.fem.params import ParameterInfo
 
 __all__ = [
     "ActuatorGeometry", "GeometryError", "actuator_mesh", "build_actuator_model", "element_sets", "embedding_weights",
