@@ -790,7 +790,7 @@ def ensemble_suite(cfg: Config, args) -> dict:
     from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
     from torchfra.fem.reduced import solve_ensemble
     from torchfra.forward import ForwardConfig, member_parameters
-    from torchfra.observe import ObservationOperator, visible_faces
+    from torchfra.observation.operator import ObservationOperator, visible_faces
 
     M = args.forward_members
     fcfg = ForwardConfig(members=M, resolution=args.mesh, load_steps=args.load_steps, threads=args.threads)

@@ -40,11 +40,11 @@ from torchfra.calibration import (  # noqa: E402
     validate_recording,
 )
 from torchfra.cli import add_deck_flags, check_deck_flags  # noqa: E402
-from torchfra.distributed import finish, ranks  # noqa: E402
 from torchfra.forward import ForwardConfig, observed_surface, run_forward  # noqa: E402
-from torchfra.io.dic_import import add_arguments, recording_path  # noqa: E402
+from torchfra.io.dic.importer import add_arguments, recording_path  # noqa: E402
 from torchfra.priors import ParameterSet, parse_truth, read_parameter_file  # noqa: E402
 from torchfra.report.calibration import write_calibration_outputs  # noqa: E402
+from torchfra.runtime.distributed import finish, ranks  # noqa: E402
 
 CONFIGS = {"seed": SEED}
 

@@ -13,7 +13,7 @@ is the undeformed reference.
 ``--camera-to-model register`` (default) places the reference points on the actuator's front face
 (x = +8 mm, y in [-8, 8], z in [0, 60]) by ICP; a flat face fixes only its normal and offset, so
 the in-plane placement comes from ``--landmarks`` (a CSV of DIC point -> model point pairs, see
-``torchfra.io.dic.read_landmarks``). ``identity`` takes the DIC coordinates as model coordinates
+``torchfra.io.dic.exports.read_landmarks``). ``identity`` takes the DIC coordinates as model coordinates
 (a coordinate system set up in the DIC software). Either way, points farther than ``--tol`` mm from
 the face are dropped (listed by id), the others written at their closest face point, and the
 displacements turned into the model frame. Beside the recording, ``<out>.import.json`` keeps the
@@ -26,10 +26,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from torchfra.io.dic import DicError  # noqa: E402
-from torchfra.io.dic_import import add_arguments, import_export  # noqa: E402
-from torchfra.recordings import RecordingError  # noqa: E402
-from torchfra.registration import RegistrationError  # noqa: E402
+from torchfra.io.dic.exports import DicError  # noqa: E402
+from torchfra.io.dic.importer import add_arguments, import_export  # noqa: E402
+from torchfra.observation.recording import RecordingError  # noqa: E402
+from torchfra.observation.registration import RegistrationError  # noqa: E402
 
 
 def parse(argv):

@@ -21,9 +21,9 @@ import torch  # noqa: E402
 from torchfra.calibration import synthetic_recording  # noqa: E402
 from torchfra.cli import add_deck_flags, check_deck_flags  # noqa: E402
 from torchfra.forward import ForwardConfig, deck_summary, with_deck  # noqa: E402
-from torchfra.observe import frame_times  # noqa: E402
+from torchfra.io.recordings import write_recording  # noqa: E402
+from torchfra.observation.operator import frame_times  # noqa: E402
 from torchfra.priors import parse_fixed  # noqa: E402
-from torchfra.recordings import write_recording  # noqa: E402
 
 
 def pressure_trace(frames: int, p_max: float, cycles: int) -> tuple[np.ndarray, np.ndarray]:

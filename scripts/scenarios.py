@@ -315,7 +315,7 @@ def run_cases(todo: list[dict], rows: dict, results: Path, a, run) -> tuple[dict
     is left, so all agree); each rank keeps its rows in ``results.rank<R>.json`` beside
     ``results`` until rank 0 has gathered them (as JSON text, never pickled) into ``results``.
     Returns (every row, cases reused) on rank 0, (None, 0) on the others."""
-    from torchfra.distributed import broadcast_ints, finish, gather_bytes, ranks
+    from torchfra.runtime.distributed import broadcast_ints, finish, gather_bytes, ranks
 
     r = ranks()
     parts = sorted(results.parent.glob("results.rank*.json")) if r.rank == 0 else []

@@ -66,7 +66,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from torchfra import fem  # noqa: E402
 from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model  # noqa: E402
-from torchfra.io.abaqus import _dat_blocks, write_inp  # noqa: E402
+from torchfra.io.abaqus.write import _dat_blocks, write_inp  # noqa: E402
 
 # name: (formulation, integration, cavity pressure, fiber element)
 #   cavity pressure "follower2": FollowerPressure on the cavity faces with 2x2 face points (CalculiX's

@@ -27,7 +27,7 @@ import torch
 
 from torchfra import fem
 from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
-from torchfra.observe import ObservationOperator, visible_faces
+from torchfra.observation.operator import ObservationOperator, visible_faces
 from torchfra.report.tensorboard import open_writer
 from torchfra.scenarios import BULK_RATIO, E_FIBER, PRESSURE_MAX, dic_grid, pressure_trace
 

@@ -35,7 +35,7 @@ from tqdm import tqdm
 from torchfra import fem
 from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model, helix_points
 from torchfra.fem.sensitivity import sensitivities
-from torchfra.observe import ObservationOperator, visible_faces
+from torchfra.observation.operator import ObservationOperator, visible_faces
 from torchfra.report.tensorboard import open_writer
 from torchfra.scenarios import BULK_RATIO, E_FIBER, PRESSURE_MAX, dic_grid, pressure_trace
 

@@ -1,4 +1,4 @@
-"""The allocator setting made at import (torchfra.allocator): on Linux with glibc it is in force after
+"""The allocator setting made at import (torchfra.runtime.allocator): on Linux with glibc it is in force after
 ``import torchfra``, and ``TORCHFRA_MALLOC=default`` leaves the allocator alone."""
 import os
 import subprocess
@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-PROBE = "import torchfra.allocator as a, torchfra; print(a.state['tuned'], a.state['reason'])"
+PROBE = "import torchfra.runtime.allocator as a, torchfra; print(a.state['tuned'], a.state['reason'])"
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc mallopt exists on Linux only")

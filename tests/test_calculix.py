@@ -15,7 +15,7 @@ import torch
 
 from torchfra import fem
 from torchfra.fem.structured import box_mesh
-from torchfra.io.abaqus import read_dat_displacements, run_calculix, write_inp
+from torchfra.io.abaqus.write import read_dat_displacements, run_calculix, write_inp
 
 LENGTH = 12.0
 C10 = 0.1  # MPa, shear modulus mu = 0.2 MPa

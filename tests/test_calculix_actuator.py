@@ -14,7 +14,7 @@ from helpers import load_script
 
 from torchfra import fem
 from torchfra.actuator.geometry import ActuatorGeometry
-from torchfra.io.abaqus import run_calculix
+from torchfra.io.abaqus.write import run_calculix
 
 GEOMETRY = ActuatorGeometry(resolution=1, length=20.0, endcap_base=5.0, endcap_top=5.0, pitch_deg=10.0)
 C10 = 0.0048  # MPa

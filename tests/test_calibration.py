@@ -79,7 +79,7 @@ def test_reduced_restart_forecasts_match_full_newton():
     from torchfra.calibration import ActuatorSolver, RestartForecaster
     from torchfra.fem.reduced import build_reduced
     from torchfra.forward import ForwardConfig
-    from torchfra.observe import ObservationOperator, visible_faces
+    from torchfra.observation.operator import ObservationOperator, visible_faces
 
     solver = ActuatorSolver(1, fwd=ForwardConfig(resolution=1, pressure=0.011))
     solver.operator = ObservationOperator(solver.mesh, visible_faces(solver.mesh, (1.0, 0.0, 0.0)), points="nodes")
@@ -149,7 +149,8 @@ def test_a_ragged_recording_calibrates_like_the_same_observations_followed(tmp_p
     with every other entry masked (reference: the same grid quadrature over the same observations,
     1e-9 relative), and every filter runs on it (the restart filter re-solving at each frame's own
     points)."""
-    from torchfra.recordings import from_table, read_recording, to_table, write_recording
+    from torchfra.io.recordings import read_recording, write_recording
+    from torchfra.observation.recording import from_table, to_table
 
     dense_dir = tmp_path / "dense"
     dense = run_calibration(CONFIG, dense_dir, progress=False)

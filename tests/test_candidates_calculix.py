@@ -14,7 +14,7 @@ from helpers import block_with_cavity
 
 from torchfra import fem
 from torchfra.fem.structured import box_mesh
-from torchfra.io.abaqus import run_calculix, write_inp
+from torchfra.io.abaqus.write import run_calculix, write_inp
 
 LENGTH = 12.0
 NU = 0.45  # small-strain Poisson ratio, as in test_calculix.py
@@ -89,7 +89,7 @@ def test_elastic_support_matches_calculix_springs(tmp_path):
 
 def test_spring_cards_store_the_support_energy():
     """The SPRING1/SPRING2 decomposition reproduces u^T K u / 2 of the term for random u (1e-13)."""
-    from torchfra.io.abaqus_candidates import support_springs
+    from torchfra.io.abaqus.candidates import support_springs
 
     mesh = box_mesh((2.0, 3.0, 1.0), (2, 3, 1), distortion=0.2)
     term = fem.ElasticSupport(mesh, "zmin")
@@ -136,7 +136,7 @@ def test_a_load_trace_in_one_calculix_step_matches_each_load_factor(tmp_path):
     does not matter). Reference CalculiX 2.20; without hold increments its linear convergence on the
     follower pressure leaves 2.3e-5 to 1.3e-4 of max |u| (measured; the most after unloading), bound
     5e-4; a neighbouring entry would be off by 20 % or more."""
-    from torchfra.io.abaqus import _dat_blocks
+    from torchfra.io.abaqus.write import _dat_blocks
 
     model = block()
     model.add(fem.FollowerPressure(model.mesh, "ymin", pressure="P", quadrature=CALCULIX_FACE_RULE))

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from torchfra import cli
-from torchfra.recordings import RecordingError
+from torchfra.observation.recording import RecordingError
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -16,7 +16,7 @@ from channel_deck import channel_deck
 from helpers import load_script
 
 from torchfra import fem
-from torchfra.io.abaqus_read import read_inp
+from torchfra.io.abaqus.read import read_inp
 
 forward_uq = load_script("forward_uq")
 make_recording = load_script("make_recording")

@@ -12,7 +12,7 @@ from helpers import load_script
 from test_read_inp import HAND_DECK
 
 from torchfra.forward import ForwardConfig, observed_faces, read_deck, run_forward, with_deck
-from torchfra.io.abaqus_read import read_inp
+from torchfra.io.abaqus.read import read_inp
 
 forward_uq = load_script("forward_uq")
 make_recording = load_script("make_recording")

@@ -11,9 +11,10 @@ from helpers import load_script
 
 from torchfra.actuator.geometry import ActuatorGeometry, actuator_mesh
 from torchfra.calibration import recording_operator
-from torchfra.io.dic import DicError, frame_numbers, read_dic, read_frame, read_landmarks
+from torchfra.io.dic.exports import DicError, frame_numbers, read_dic, read_frame, read_landmarks
 from torchfra.io.pressure_trace import pressure_at_frames, read_pressure_trace
-from torchfra.recordings import Recording, read_recording
+from torchfra.io.recordings import read_recording
+from torchfra.observation.recording import Recording
 
 MATCHID_2024 = ("Coordinates.Image X [Pixel],Coordinates.Image Y [Pixel],coor.X [mm],coor.Y [mm],coor.Z [mm],"
                 "disp.Horizontal Displacement U [mm],disp.Vertical Displacement V [mm],disp.Out-Of-Plane: W [mm],"

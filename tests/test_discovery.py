@@ -31,8 +31,8 @@ from torchfra.discovery import (
     quiet_triples,
     rank,
 )
+from torchfra.observation.recording import Recording
 from torchfra.physics import COORDINATES
-from torchfra.recordings import Recording
 
 DATA = Path(__file__).parent / "data"
 
@@ -760,7 +760,7 @@ def test_diagnose_script_says_what_it_did_below_the_floor(tmp_path, monkeypatch,
     by test_below_the_floor_the_meshs_error_is_taken_out_before_the_tests)."""
     from helpers import load_script
 
-    from torchfra.recordings import write_recording
+    from torchfra.io.recordings import write_recording
 
     script = load_script("diagnose")
     path = write_recording(tmp_path / "rec.csv", grid_recording(K=6, n=3))

@@ -12,7 +12,7 @@ from torch.func import jvp
 
 from torchfra import fem
 from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model, helix_points
-from torchfra.observe import visible_faces
+from torchfra.observation.operator import visible_faces
 
 C10 = 0.0068
 PARAMS = {"C10": C10, "D1": 1.0 / (1000.0 * C10), "E_fiber": 31000.0, "P": 0.022}
@@ -208,9 +208,9 @@ def test_the_diagnosis_sees_the_pitch_through_a_secant():
     import math
 
     from torchfra.actuator.geometry import actuator_mesh
-    from torchfra.observe import regular_grid
+    from torchfra.observation.operator import regular_grid
+    from torchfra.observation.recording import Recording
     from torchfra.physics import SECANT_STEPS, ActuatorPhysics
-    from torchfra.recordings import Recording
 
     mesh = actuator_mesh(ActuatorGeometry(resolution=1))
     X = regular_grid(mesh, visible_faces(mesh, (1.0, 0.0, 0.0)), 4.0)

@@ -9,7 +9,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from torchfra.recordings import COLUMNS, Recording, RecordingError, read_recording, write_recording
+from torchfra.io.recordings import read_recording, write_recording
+from torchfra.observation.recording import COLUMNS, Recording, RecordingError
 
 FUZZ = settings(max_examples=150, deadline=None, database=None,
                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])

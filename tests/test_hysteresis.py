@@ -11,7 +11,7 @@ import pytest
 from scipy import stats
 
 from torchfra.discovery import NoiseModel, Whitener, hysteresis
-from torchfra.recordings import Recording
+from torchfra.observation.recording import Recording
 
 K, PMAX = 20, 0.022
 

@@ -9,7 +9,7 @@ from helpers import block_with_cavity
 from torchfra import fem
 from torchfra.fem.elements import HEX20_FACES, quad8_shape
 from torchfra.fem.structured import box_mesh, ring_sector_mesh
-from torchfra.observe import (
+from torchfra.observation.operator import (
     ObservationError,
     ObservationOperator,
     boundary_faces,

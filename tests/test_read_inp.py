@@ -1,4 +1,4 @@
-"""torchfra.io.abaqus_read.read_inp: decks that write_inp writes read back into the same model (same
+"""torchfra.io.abaqus.read.read_inp: decks that write_inp writes read back into the same model (same
 residual at a random state, same parameters), a hand-written Abaqus deck read and solved, and
 unsupported or broken decks rejected with the file, line and keyword."""
 import re
@@ -11,8 +11,8 @@ from helpers import block_with_cavity
 from torchfra import fem
 from torchfra.fem.embedding import embedding_weights
 from torchfra.fem.structured import box_mesh
-from torchfra.io.abaqus import write_inp
-from torchfra.io.abaqus_read import InpError, read_inp
+from torchfra.io.abaqus.read import InpError, read_inp
+from torchfra.io.abaqus.write import write_inp
 
 RTOL = 1e-12
 

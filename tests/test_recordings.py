@@ -11,7 +11,8 @@ import scipy.sparse as sp
 
 from torchfra.actuator.geometry import ActuatorGeometry, actuator_mesh
 from torchfra.calibration import forecast_at_frames, load_factors, recording_operator
-from torchfra.recordings import Recording, RecordingError, read_recording, write_recording
+from torchfra.io.recordings import read_recording, write_recording
+from torchfra.observation.recording import Recording, RecordingError
 
 HEADER = "frame,time,pressure,point_id,X,Y,Z,uy,uz\n"
 
@@ -213,7 +214,7 @@ def test_ragged_frames_keep_their_own_points_and_refuse_the_diagnosis():
     """Frames that each observe their own few points: frame k's slots hold its rows in the order of
     their point ids, empty slots NaN and -1; what follows points through frames refuses by name."""
     from torchfra.discovery import diagnose
-    from torchfra.recordings import from_table
+    from torchfra.observation.recording import from_table
 
     # frame 0 sees points 3, 1; frame 1 sees 2; frame 2 sees 5, 4, 0 (6 points, at most 3 per frame)
     frame = np.array([0, 0, 1, 2, 2, 2], dtype=float)

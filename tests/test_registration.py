@@ -4,7 +4,7 @@ import pytest
 
 from torchfra.actuator.geometry import ActuatorGeometry
 from torchfra.fem.structured import box_mesh
-from torchfra.registration import (
+from torchfra.observation.registration import (
     PlaneFace,
     RegistrationError,
     SampleFace,

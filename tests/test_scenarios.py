@@ -9,7 +9,7 @@ import torch
 
 from torchfra import fem, scenarios
 from torchfra.actuator.geometry import ActuatorGeometry, actuator_mesh, build_actuator_model
-from torchfra.observe import ObservationOperator, visible_faces
+from torchfra.observation.operator import ObservationOperator, visible_faces
 
 FAST = dict(resolution=1, frames=3, truth_c10=0.0062)
 
@@ -203,7 +203,7 @@ def test_calculix_recordings_of_the_actuator(cache, tmp_path):
 def test_a_calculix_deck_that_does_not_solve_is_named(tmp_path, monkeypatch):
     """A CalculiX run that stops early ends in a CalculixError (which the scripts print in one
     paragraph) naming the deck and the way out, a lower pressure."""
-    from torchfra.io import abaqus
+    from torchfra.io.abaqus import write as abaqus
 
     def stopped(*args, **kwargs):
         raise abaqus.CalculixError("CalculiX stopped at time 0.4, before load factor 1\noutput tail")

@@ -12,7 +12,8 @@ import torch
 from torchfra import calibration
 from torchfra.assimilation import FilterResult, analysis
 from torchfra.calibration import CheckpointError, read_restart_checkpoint
-from torchfra.recordings import COLUMNS, RecordingError, read_recording
+from torchfra.io.recordings import read_recording
+from torchfra.observation.recording import COLUMNS, RecordingError
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 

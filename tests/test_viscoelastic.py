@@ -13,8 +13,8 @@ import scipy.sparse as sp
 import torch
 
 from torchfra.actuator.history import creep_load, normalized_time
+from torchfra.observation.recording import Recording
 from torchfra.physics import CANDIDATE_PARAMETERS, HISTORY_DEPENDENT_CANDIDATES, LOAD_MAP_ONLY, ActuatorPhysics
-from torchfra.recordings import Recording
 
 D = torch.float64
 
@@ -242,7 +242,7 @@ def test_actuator_physics_creep_shares_the_base_solve_and_its_sensitivities_are_
     base model bitwise; changing g1 or tau1 solves nothing (they act on the frames' load factors only);
     dY/dg1 and dY/dlog tau1 match central differences of the observations (reference)."""
     from torchfra.actuator.geometry import ActuatorGeometry, actuator_mesh
-    from torchfra.observe import regular_grid, visible_faces
+    from torchfra.observation.operator import regular_grid, visible_faces
     from torchfra.physics import ActuatorPhysics as Real
 
     mesh = actuator_mesh(ActuatorGeometry(resolution=1))

@@ -279,8 +279,8 @@ def test_the_diagnosis_creeping_body_on_the_fe_history_model():
     import math
 
     from torchfra.actuator.geometry import ActuatorGeometry, actuator_mesh
+    from torchfra.observation.recording import Recording
     from torchfra.physics import ActuatorPhysics, HistoryPhysics
-    from torchfra.recordings import Recording
     from torchfra.scenarios import dic_grid
 
     mesh = actuator_mesh(ActuatorGeometry(resolution=1))

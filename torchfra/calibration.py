@@ -27,8 +27,8 @@ import torch
 from torchfra import fem
 from torchfra.assimilation.filters import PolynomialSlave
 from torchfra.forward import ForwardConfig, forward_model, observed_faces, parameter_set, with_deck
-from torchfra.observe import ObservationError, ObservationOperator, frame_times, visible_faces
-from torchfra.recordings import Recording, RecordingError
+from torchfra.observation.operator import ObservationError, ObservationOperator, frame_times, visible_faces
+from torchfra.observation.recording import Recording, RecordingError
 
 
 @dataclass
@@ -134,7 +134,7 @@ def validate_recording(config: CalibrationConfig) -> None:
     ensemble's range, points off the visible face) before any FE work or helper process starts."""
     if config.recording is None:
         return
-    from torchfra.recordings import read_recording
+    from torchfra.io.recordings import read_recording
 
     rec = read_recording(config.recording)
     fwd_cfg = forward_config(config)
@@ -252,7 +252,7 @@ def synthetic_recording(c10, resolution: int = 1, points="nodes", noise: float =
     observations (K, P, 2). ``deck``: ``{"inp", "camera", "face"}`` of the user's own model (see
     :class:`ForwardConfig`); its ``pressure`` at load factor 1 is the deck's, ``pressure`` a trace
     up to it."""
-    from torchfra.observe import regular_grid
+    from torchfra.observation.operator import regular_grid
 
     times = frame_times(100) if times is None else np.asarray(times, dtype=np.float64)
     deck = with_deck(ForwardConfig(resolution=resolution, parameters=list(parameters), **deck)) if deck else None
@@ -409,12 +409,12 @@ class RestartRanks:
         self.solver, self.reduced = None, None  # rank 0's own share is solved with these (set by start)
 
     def _header(self, cmd: float, value: float = 0.0) -> None:
-        from torchfra.distributed import broadcast_tensor
+        from torchfra.runtime.distributed import broadcast_tensor
 
         broadcast_tensor(torch.tensor([cmd, value], dtype=torch.float64), self.r)
 
     def start(self, solver: ActuatorSolver, reduced, reduced_file: Path | None, names: list[str]) -> None:
-        from torchfra.distributed import broadcast_tensor
+        from torchfra.runtime.distributed import broadcast_tensor
 
         self.solver, self.reduced = solver, reduced
         self._header(self.START)
@@ -426,7 +426,7 @@ class RestartRanks:
         self.names = list(names)
 
     def solve(self, params: dict, x: torch.Tensor, lam_now: torch.Tensor, target: float):
-        from torchfra.distributed import broadcast_tensor, recv_tensors
+        from torchfra.runtime.distributed import broadcast_tensor, recv_tensors
 
         self.busy = True
         self._header(self.SOLVE, target)
@@ -469,8 +469,8 @@ def serve_restart(config, r) -> int:
     rank 0 sends, until its stop. Returns the number of forecasts served."""
     import io
 
-    from torchfra.distributed import broadcast_tensor, send_tensors
     from torchfra.fem.reduced import HyperReducedModel
+    from torchfra.runtime.distributed import broadcast_tensor, send_tensors
 
     solver, reduced, names, served = None, None, [], 0
     while True:
@@ -644,7 +644,7 @@ class ExactReference:
 
 def _load_recording(config: CalibrationConfig, run_dir: Path, progress: bool):
     """The recording to calibrate on, and its noise-free observations and truth when synthetic."""
-    from torchfra.recordings import read_recording, write_recording
+    from torchfra.io.recordings import read_recording, write_recording
 
     if config.recording is not None:
         return read_recording(config.recording), None, None

@@ -21,7 +21,7 @@ DEBUG_FLAG = "--debug"
 
 def user_errors() -> tuple[type[BaseException], ...]:
     errors: tuple[type[BaseException], ...] = (ValueError, KeyError, OSError)
-    abaqus = sys.modules.get("torchfra.io.abaqus")  # only a script that ran CalculiX can meet its error
+    abaqus = sys.modules.get("torchfra.io.abaqus.write")  # only a script that ran CalculiX can meet its error
     return errors + (abaqus.CalculixError,) if abaqus is not None else errors
 
 

@@ -69,6 +69,7 @@ import numpy as np
 import torch
 from scipy import linalg, stats
 
+from torchfra.observation.recording import Recording, RecordingError
 from torchfra.physics import (
     CANDIDATE_PARAMETERS,
     COORDINATES,
@@ -82,7 +83,6 @@ from torchfra.physics import (
     Evaluation,
     HistoryPhysics,
 )
-from torchfra.recordings import Recording, RecordingError
 
 ALL_CANDIDATES = tuple(sorted(set(CANDIDATE_PARAMETERS) - set(RIVALS.values())))
 MAX_PRESSURE = 0.5  # MPa: beyond any pressure the soft actuator survives (a unit mistake)

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from torchfra import fem
-from torchfra.observe import ObservationOperator, frame_times, interpolate_in_time, visible_faces
+from torchfra.observation.operator import ObservationOperator, frame_times, interpolate_in_time, visible_faces
 from torchfra.priors import ParameterSet, lognormal_parameters, paper_prior
 
 KAPPA_T = 0.005615  # MPa, the paper's reference value of C10
@@ -92,7 +92,7 @@ def read_deck(path) -> tuple[fem.Model, dict[str, float], str]:
     constraints, values: an ``*INCLUDE``d file that changed changes it)."""
     import hashlib
 
-    from torchfra.io.abaqus_read import read_inp
+    from torchfra.io.abaqus.read import read_inp
 
     path = _deck_path(path)
     model, values = read_inp(path)
@@ -190,7 +190,7 @@ def observed_faces(mesh, config) -> np.ndarray | str:
 
 def observed_surface(config):
     """The observed faces of ``config``'s model as a registration target (DIC points are placed on it)."""
-    from torchfra.registration import mesh_face
+    from torchfra.observation.registration import mesh_face
 
     model = forward_model(config)[0]
     return mesh_face(model.mesh, faces=observed_faces(model.mesh, config))
@@ -457,7 +457,7 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
 
     if config.method not in ("reduced", "full"):
         raise ValueError(f"forward method must be 'reduced' or 'full', got {config.method!r}")
-    from torchfra.distributed import broadcast_ints, ranks, share_file, share_files
+    from torchfra.runtime.distributed import broadcast_ints, ranks, share_file, share_files
 
     run_dir = Path(run_dir)
     r = ranks()  # torchrun: members are shared out by rank, not claimed through lock files

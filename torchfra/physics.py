@@ -58,8 +58,8 @@ from torchfra.actuator.candidates import fiber_pitch_parameter
 from torchfra.actuator.geometry import CAVITY_OFFSET, ActuatorGeometry, build_actuator_model
 from torchfra.actuator.history import G1, LAG, TAU1, creep_load, delayed_load, normalized_time
 from torchfra.fem.sensitivity import sensitivities
-from torchfra.observe import ObservationError, ObservationOperator, visible_faces
-from torchfra.recordings import Recording, RecordingError
+from torchfra.observation.operator import ObservationError, ObservationOperator, visible_faces
+from torchfra.observation.recording import Recording, RecordingError
 
 BULK_RATIO = 1000.0
 E_FIBER = 31000.0
@@ -269,7 +269,7 @@ class ActuatorPhysics:
         self.steps = np.arange(1, self.load_steps + 1) / self.load_steps
 
     def _deck_model(self, material):
-        from torchfra.io.abaqus_read import read_inp
+        from torchfra.io.abaqus.read import read_inp
 
         bad = self.deck.available(self.candidates)
         if bad:
@@ -573,7 +573,7 @@ class HistoryPhysics:
         if deck is None:
             self.model, _ = build_actuator_model(ActuatorGeometry(resolution=self.resolution))
         else:
-            from torchfra.io.abaqus_read import read_inp
+            from torchfra.io.abaqus.read import read_inp
 
             self.model, _ = read_inp(deck.path)
         fem.with_viscoelasticity(self.model)

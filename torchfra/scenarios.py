@@ -103,8 +103,8 @@ import torch
 from torchfra import fem
 from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
 from torchfra.fem.materials import Material, ParameterError
-from torchfra.observe import ObservationOperator, frame_times, regular_grid, visible_faces
-from torchfra.recordings import Recording
+from torchfra.observation.operator import ObservationOperator, frame_times, regular_grid, visible_faces
+from torchfra.observation.recording import Recording
 
 PRESSURE_MAX = 0.022  # MPa, the largest recorded pressure (paper §4)
 VISCO_TAU1 = 0.1  # relaxation time of the viscoelastic scenarios, in units of the trace's duration
@@ -388,7 +388,7 @@ def _calculix_displacements(model, values: dict, lam: np.ndarray, n_nodes: int, 
                             ) -> np.ndarray:
     """CalculiX's displacements (K, n_nodes, 3) of the deck of ``model`` at ``values`` (name -> number)
     through the load factors ``lam`` (K,), one increment each, written and run in ``deck_dir``."""
-    from torchfra.io.abaqus import CalculixError, _dat_blocks, run_calculix, write_inp
+    from torchfra.io.abaqus.write import CalculixError, _dat_blocks, run_calculix, write_inp
 
     deck_dir.mkdir(parents=True, exist_ok=True)
     # increments of at most CALCULIX_DP MPa: its Newton on the rigid top's MPC and the follower

@@ -1,1 +1,17 @@
-"""Exchange with other finite element codes (Abaqus/CalculiX input decks and their results)."""
+"""Files a user hands in or gets out: recordings, DIC exports, pressure traces, Abaqus/CalculiX decks, VTU.
+
+- :func:`read_recording`, :func:`write_recording` (:mod:`~torchfra.io.recordings`): the recording
+  CSV/NPZ format, read defensively;
+- :mod:`torchfra.io.dic`: MatchID, VIC-3D, DICe and generic point-cloud exports, turned into a
+  recording on the model's face (:func:`~torchfra.io.dic.import_export`);
+- :func:`read_pressure_trace` (:mod:`~torchfra.io.pressure_trace`): the pressure sensor's log;
+- :mod:`torchfra.io.abaqus`: :func:`~torchfra.io.abaqus.read_inp` (a deck into a model),
+  :func:`~torchfra.io.abaqus.write_inp` (a model into a deck), :func:`~torchfra.io.abaqus.run_calculix`;
+- :func:`write_vtu` (:mod:`~torchfra.io.vtu`): solutions for ParaView.
+"""
+from torchfra.io.abaqus import read_inp, write_inp
+from torchfra.io.pressure_trace import read_pressure_trace
+from torchfra.io.recordings import read_recording, write_recording
+from torchfra.io.vtu import write_vtu
+
+__all__ = ["read_inp", "read_pressure_trace", "read_recording", "write_inp", "write_recording", "write_vtu"]

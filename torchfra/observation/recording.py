@@ -7,7 +7,7 @@ CSV, one row per point per frame::
 time normalized (or in s), pressure in MPa, reference coordinates X, Y, Z and displacements uy, uz
 in mm. An empty or NaN ``uy``/``uz`` is a missing observation; a point absent from a frame is
 missing too. Missing values are masked (NaN in ``Recording.Z``), never zero-filled. The NPZ form holds
-the same names as arrays (1-D, or frames x points, see :mod:`torchfra.recording_files`).
+the same names as arrays (1-D, or frames x points, see :mod:`torchfra.io.recordings`).
 
 A recording that follows its points through the frames is stored frames x points. One whose
 points come and go (each frame sees at most half of all its points: a DIC export that renumbers
@@ -21,15 +21,12 @@ not increase with the frame number, a point whose reference coordinates change b
 displacements larger than ``max_displacement`` (default 1000 mm; a unit mix-up such as metres vs
 mm shows up as values off by 1000), an infinite value anywhere, and a recording without a single
 observed displacement. What is not a recording file at all (a folder, a device, a compressed,
-binary or UTF-16 file, an object array) is refused before parsing, see :mod:`torchfra.recording_files`;
+binary or UTF-16 file, an object array) is refused before parsing, see :mod:`torchfra.io.recordings`;
 limits on the size of what is read are keyword arguments of :func:`read_recording`.
 """
 from __future__ import annotations
 
-import csv
-import stat
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -193,34 +190,6 @@ def from_table(t: dict[str, np.ndarray], source: str = "<memory>", max_displacem
     return Recording(frames, times, pressure, pids, X, Z, source, slots)
 
 
-def read_recording(path, max_displacement: float = 1000.0, *, max_line_bytes: int = MAX_LINE_BYTES,
-                   max_rows: int = MAX_ROWS, max_frame_points: int = MAX_FRAME_POINTS) -> Recording:
-    """Read and validate a recording (``.csv`` or ``.npz``).
-
-    Limits, refused with a message naming the keyword that raises them: ``max_line_bytes`` of a CSV
-    line, ``max_rows`` data rows (CSV) or entries of an array (NPZ), ``max_frame_points`` frames x
-    points."""
-    from torchfra import recording_files as files
-
-    path = Path(path)
-    try:
-        mode = path.stat().st_mode  # before opening: a FIFO would block, a device never end
-    except (FileNotFoundError, NotADirectoryError):
-        raise RecordingError(f"{path}: no such recording") from None
-    if stat.S_ISDIR(mode):
-        raise RecordingError(f"{path}: is a folder, not a recording; name the .csv or .npz file")
-    if not stat.S_ISREG(mode):
-        raise RecordingError(f"{path}: not a regular file (a device, pipe or socket); a recording is a .csv or "
-                             ".npz file")
-    if path.suffix.lower() == ".npz":
-        table = files.table_from_npz(path, max_rows)
-    elif path.suffix.lower() == ".csv":
-        table = files.table_from_csv(path, max_line_bytes, max_rows)
-    else:
-        raise RecordingError(f"{path}: unknown recording format {path.suffix!r}; use .csv or .npz")
-    return from_table(table, str(path), max_displacement, max_frame_points)
-
-
 def to_table(rec: Recording) -> dict[str, np.ndarray]:
     K, S = rec.Z.shape[:2]
     fi, si = np.repeat(np.arange(K), S), np.tile(np.arange(S), K)
@@ -234,28 +203,3 @@ def to_table(rec: Recording) -> dict[str, np.ndarray]:
         "X": rec.X[pi, 0], "Y": rec.X[pi, 1], "Z": rec.X[pi, 2],
         "uy": rec.Z[fi, si, 0], "uz": rec.Z[fi, si, 1],
     }
-
-
-def write_recording(path, rec: Recording) -> Path:
-    """Write ``rec`` as CSV or NPZ (by suffix); NaN (not observed) is written as an empty CSV field.
-    The file appears whole or not at all (written aside, then renamed): a killed run leaves no
-    half-written recording behind."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    table = to_table(rec)
-    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
-    if path.suffix.lower() == ".npz":
-        np.savez(tmp, **table)
-        tmp.replace(path)
-        return path
-    if path.suffix.lower() != ".csv":
-        raise RecordingError(f"{path}: unknown recording format {path.suffix!r}; use .csv or .npz")
-    with open(tmp, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(COLUMNS)
-        ints = {"frame", "point_id"}
-        for i in range(len(table["frame"])):
-            w.writerow([int(table[c][i]) if c in ints else ("" if not np.isfinite(table[c][i]) else repr(float(table[c][i])))
-                        for c in COLUMNS])
-    tmp.replace(path)
-    return path

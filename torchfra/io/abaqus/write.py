@@ -74,7 +74,7 @@ from torchfra.fem.sensor import SensorCavityPressure
 from torchfra.fem.solid import Hex20Solid
 from torchfra.fem.springs import ElasticSupport
 from torchfra.fem.truss import Truss
-from torchfra.io.abaqus_candidates import gravity_of_solids, support_springs
+from torchfra.io.abaqus.candidates import gravity_of_solids, support_springs
 
 _PRESSURES = (FollowerPressure, CavityPressure)
 

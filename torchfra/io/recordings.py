@@ -20,13 +20,23 @@ from __future__ import annotations
 
 import csv
 import itertools
+import stat
 import zipfile
 import zlib
 from pathlib import Path
 
 import numpy as np
 
-from torchfra.recordings import COLUMNS, MAX_LINE_BYTES, MAX_ROWS, RecordingError
+from torchfra.observation.recording import (
+    COLUMNS,
+    MAX_FRAME_POINTS,
+    MAX_LINE_BYTES,
+    MAX_ROWS,
+    Recording,
+    RecordingError,
+    from_table,
+    to_table,
+)
 
 _CHUNK = 1 << 16  # rows converted to an array at a time, so memory grows by arrays, not Python floats
 _DELIMITERS = (",", ";", "\t")
@@ -227,3 +237,54 @@ def table_from_npz(path: Path, max_rows: int = MAX_ROWS) -> dict[str, np.ndarray
     if table["frame"].size == 0:
         raise RecordingError(f"{path}: the recording is empty")
     return table
+
+
+def read_recording(path, max_displacement: float = 1000.0, *, max_line_bytes: int = MAX_LINE_BYTES,
+                   max_rows: int = MAX_ROWS, max_frame_points: int = MAX_FRAME_POINTS) -> Recording:
+    """Read and validate a recording (``.csv`` or ``.npz``).
+
+    Limits, refused with a message naming the keyword that raises them: ``max_line_bytes`` of a CSV
+    line, ``max_rows`` data rows (CSV) or entries of an array (NPZ), ``max_frame_points`` frames x
+    points."""
+    path = Path(path)
+    try:
+        mode = path.stat().st_mode  # before opening: a FIFO would block, a device never end
+    except (FileNotFoundError, NotADirectoryError):
+        raise RecordingError(f"{path}: no such recording") from None
+    if stat.S_ISDIR(mode):
+        raise RecordingError(f"{path}: is a folder, not a recording; name the .csv or .npz file")
+    if not stat.S_ISREG(mode):
+        raise RecordingError(f"{path}: not a regular file (a device, pipe or socket); a recording is a .csv or "
+                             ".npz file")
+    if path.suffix.lower() == ".npz":
+        table = table_from_npz(path, max_rows)
+    elif path.suffix.lower() == ".csv":
+        table = table_from_csv(path, max_line_bytes, max_rows)
+    else:
+        raise RecordingError(f"{path}: unknown recording format {path.suffix!r}; use .csv or .npz")
+    return from_table(table, str(path), max_displacement, max_frame_points)
+
+
+def write_recording(path, rec: Recording) -> Path:
+    """Write ``rec`` as CSV or NPZ (by suffix); NaN (not observed) is written as an empty CSV field.
+    The file appears whole or not at all (written aside, then renamed): a killed run leaves no
+    half-written recording behind."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    table = to_table(rec)
+    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
+    if path.suffix.lower() == ".npz":
+        np.savez(tmp, **table)
+        tmp.replace(path)
+        return path
+    if path.suffix.lower() != ".csv":
+        raise RecordingError(f"{path}: unknown recording format {path.suffix!r}; use .csv or .npz")
+    with open(tmp, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(COLUMNS)
+        ints = {"frame", "point_id"}
+        for i in range(len(table["frame"])):
+            w.writerow([int(table[c][i]) if c in ints else ("" if not np.isfinite(table[c][i]) else repr(float(table[c][i])))
+                        for c in COLUMNS])
+    tmp.replace(path)
+    return path

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchfra.io.dic import FORMATS, read_dic, read_landmarks, to_recording
+from torchfra.io.dic.exports import FORMATS, read_dic, read_landmarks, to_recording
 from torchfra.io.pressure_trace import pressure_at_frames, read_pressure_trace
 
 
@@ -45,9 +45,9 @@ def import_export(export, a: argparse.Namespace, out, face=None) -> tuple[str, d
     """Convert the export (a directory, a file, or a list of files) with the options ``a`` (see
     :func:`add_arguments`) into the recording ``out``; returns a one-paragraph report and the
     ``<out>.import.json`` content. ``face``: the model face the points are registered on (a
-    :mod:`torchfra.registration` face; default the actuator's front face)."""
-    from torchfra.recordings import write_recording
-    from torchfra.registration import Similarity, evaluate, front_face, register
+    :mod:`torchfra.observation.registration` face; default the actuator's front face)."""
+    from torchfra.io.recordings import write_recording
+    from torchfra.observation.registration import Similarity, evaluate, front_face, register
 
     exclude = [a.pressure] + ([a.landmarks] if a.landmarks else [])
     if isinstance(export, (list, tuple)) and len(export) == 1:

@@ -346,7 +346,7 @@ class _Reader:
         elif card.keyword in _IGNORED:
             pass
         else:
-            raise card.error("keyword is not supported by torchfra.io.abaqus_read (no torchfra counterpart)")
+            raise card.error("keyword is not supported by torchfra.io.abaqus.read (no torchfra counterpart)")
 
     def card_NODE(self, card: _Card) -> None:
         card.check_params({"NSET"})

@@ -31,7 +31,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from torchfra.io.tables import MAX_PREAMBLE, DicError, name_unit, read_lines, split_line
-from torchfra.recordings import Recording, from_table, to_table
+from torchfra.observation.recording import Recording, from_table, to_table
 
 ROLES = ("x", "y", "z", "u", "v", "w")
 LENGTH_UNITS = {"mm": 1.0, "m": 1e3, "cm": 10.0, "um": 1e-3, "µm": 1e-3, "μm": 1e-3, "in": 25.4}

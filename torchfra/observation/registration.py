@@ -115,8 +115,8 @@ class TriangleFace:
 
 def mesh_face(mesh, camera_direction=(1.0, 0.0, 0.0), faces=None) -> TriangleFace:
     """The faces of a Hex20 mesh an orthographic camera along ``camera_direction`` sees
-    (:func:`torchfra.observe.visible_faces`), or ``faces`` (face rows or a face set's name), as triangles."""
-    from torchfra.observe import boundary_trimesh, visible_faces
+    (:func:`torchfra.observation.operator.visible_faces`), or ``faces`` (face rows or a face set's name), as triangles."""
+    from torchfra.observation.operator import boundary_trimesh, visible_faces
 
     surface = boundary_trimesh(mesh, visible_faces(mesh, camera_direction) if faces is None else faces)
     return TriangleFace(surface.vertices, surface.faces)
