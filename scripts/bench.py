@@ -46,7 +46,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's torchfra, as every script
 
-from torchfra import allocator, fem  # noqa: E402
+from torchfra import fem  # noqa: E402
+from torchfra.runtime import allocator  # noqa: E402
 from torchfra.fem.assembly import SparsePattern, scatter_vector  # noqa: E402
 from torchfra.fem.linsolve import Factorization, available_backends, resolve_backend  # noqa: E402
 from torchfra.fem.structured import box_mesh  # noqa: E402
