@@ -47,17 +47,17 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's torchfra, as every script
 
 from torchfra import fem  # noqa: E402
-from torchfra.runtime import allocator  # noqa: E402
+from torchfra.actuator.candidates import KAPPA_T  # noqa: E402  (C10's prior: logN(1.1 kappa_t, (0.2 kappa_t)^2))
 from torchfra.fem.assembly import SparsePattern, scatter_vector  # noqa: E402
 from torchfra.fem.linsolve import Factorization, available_backends, resolve_backend  # noqa: E402
 from torchfra.fem.structured import box_mesh  # noqa: E402
+from torchfra.runtime import allocator  # noqa: E402
 
 warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
 warnings.filterwarnings("ignore", message="Sparse invariant checks")
 
 DTYPE = torch.float64
 BOX_MM = (16.0, 16.0, 60.0)  # the actuator body (DESIGN §3)
-KAPPA_T = 0.005615  # MPa, the paper's true C10 (§5); its prior: C10 ~ logN(1.1 kappa_t, (0.2 kappa_t)^2)
 D1 = 0.1  # 1/MPa: K = 2 / D1 = 20 MPa, about 1600 times mu = 2 C10: near-incompressible
 P_OVER_C10 = 0.02  # follower pressure on the ymin face / nominal C10; linear beam theory: tip ~ 16 mm
 KERNEL_AMPLITUDE = 0.01  # random nodal displacement / smallest element edge (strains of ~1 %)

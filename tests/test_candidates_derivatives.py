@@ -196,15 +196,27 @@ def test_registry_entries(cls, name):
 
 
 def test_catalogue_names_and_nulls():
-    from torchfra.actuator.candidates import CANDIDATES
+    from torchfra.actuator.candidates import CANDIDATES, fe_null_values
 
-    nulls = {name: c.null_values() for name, c in CANDIDATES.items()}
+    nulls = {name: fe_null_values(name) for name in CANDIDATES}
     assert nulls == {
         "mooney_rivlin": {"C01": 0.0}, "compressibility": {"D1": 0.0}, "gravity": {"density": 0.0},
         "compliant_base": {"c_n": 0.0, "c_t": 0.0}, "fiber_stiffness": {},
         "pressure_sensor": {"pressure_gain": 1.0, "pressure_offset": 0.0}, "cavity_offset": {"delta_y": 0.0},
         "fiber_pitch": {"fiber_pitch": 2.0},
     }
-    for c in CANDIDATES.values():
-        for p in c.parameters:
+    for terms in CANDIDATES.values():
+        for p in terms:
             assert p.unit and p.description and p.low < p.high
+
+
+def test_the_registry_names_each_fe_terms_parameters_with_their_units_and_ranges():
+    """One registry: the diagnosis's and the filters' parameters of a candidate (actuator.candidates.REGISTRY)
+    are exactly the FE terms' parameters (fem ParameterInfo), in the same units."""
+    from torchfra.actuator.candidates import CANDIDATES, COORDINATES, REGISTRY
+
+    for name, terms in CANDIDATES.items():
+        assert REGISTRY[name].parameter_names == tuple(p.name for p in terms), name
+        for p in terms:
+            c = COORDINATES[p.name]
+            assert c.unit == p.unit, (p.name, c.unit, p.unit)

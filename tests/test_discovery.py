@@ -15,6 +15,7 @@ import pytest
 from helpers import assert_same_json
 
 from torchfra import fem
+from torchfra.actuator.candidates import COORDINATES
 from torchfra.calibration import synthetic_recording
 from torchfra.discovery import (
     ALL_CANDIDATES,
@@ -32,7 +33,6 @@ from torchfra.discovery import (
     rank,
 )
 from torchfra.observation.recording import Recording
-from torchfra.physics import COORDINATES
 
 DATA = Path(__file__).parent / "data"
 
@@ -352,7 +352,7 @@ class _ScalingPhysics:
         self.rec, self.A = rec, amplitude
 
     def coordinate(self, name):
-        from torchfra.physics import COORDINATES
+        from torchfra.actuator.candidates import COORDINATES
 
         return COORDINATES[name]
 
@@ -373,8 +373,8 @@ def test_gauss_newton_laplace_matches_the_exact_posterior(free):
     priors of torchfra.physics.COORDINATES) against the exact posterior by quadrature on a fine grid of
     the coordinates: means within 0.05 exact std, std ratios within 5 %, log evidence within 0.05.
     Reference: direct numerical integration of likelihood x prior (1-D and 2-D tensor grids)."""
+    from torchfra.actuator.candidates import COORDINATES
     from torchfra.discovery import gauss_newton
-    from torchfra.physics import COORDINATES
 
     rng = np.random.default_rng(11)
     rec = grid_recording(K=12, n=5)

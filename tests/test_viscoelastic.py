@@ -12,9 +12,10 @@ import pytest
 import scipy.sparse as sp
 import torch
 
+from torchfra.actuator.candidates import CANDIDATE_PARAMETERS, HISTORY_DEPENDENT_CANDIDATES, LOAD_MAP_ONLY
 from torchfra.actuator.history import creep_load, normalized_time
 from torchfra.observation.recording import Recording
-from torchfra.physics import CANDIDATE_PARAMETERS, HISTORY_DEPENDENT_CANDIDATES, LOAD_MAP_ONLY, ActuatorPhysics
+from torchfra.physics import ActuatorPhysics
 
 D = torch.float64
 

@@ -69,8 +69,7 @@ import numpy as np
 import torch
 from scipy import linalg, stats
 
-from torchfra.observation.recording import Recording, RecordingError
-from torchfra.physics import (
+from torchfra.actuator.candidates import (
     CANDIDATE_PARAMETERS,
     COORDINATES,
     FAR_SECANTS,
@@ -78,11 +77,9 @@ from torchfra.physics import (
     LOAD_MAP_ONLY,
     NUISANCE,
     RIVALS,
-    ActuatorPhysics,
-    DeckModel,
-    Evaluation,
-    HistoryPhysics,
 )
+from torchfra.observation.recording import Recording, RecordingError
+from torchfra.physics import ActuatorPhysics, DeckModel, Evaluation, HistoryPhysics
 
 ALL_CANDIDATES = tuple(sorted(set(CANDIDATE_PARAMETERS) - set(RIVALS.values())))
 MAX_PRESSURE = 0.5  # MPa: beyond any pressure the soft actuator survives (a unit mistake)

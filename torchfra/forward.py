@@ -23,10 +23,9 @@ import numpy as np
 import torch
 
 from torchfra import fem
+from torchfra.actuator.candidates import BULK_RATIO, E_FIBER, KAPPA_T
 from torchfra.observation.operator import ObservationOperator, frame_times, interpolate_in_time, visible_faces
 from torchfra.priors import ParameterSet, lognormal_parameters, paper_prior
-
-KAPPA_T = 0.005615  # MPa, the paper's reference value of C10
 
 
 def sample_lognormal(n: int, mean: float, std: float, generator: torch.Generator) -> torch.Tensor:
@@ -44,8 +43,8 @@ class ForwardConfig:
     seed: int = 0
     c10_mean: float = 1.1 * KAPPA_T
     c10_std: float = 0.2 * KAPPA_T
-    bulk_ratio: float = 1000.0
-    E_fiber: float = 31000.0
+    bulk_ratio: float = BULK_RATIO
+    E_fiber: float = E_FIBER
     pressure: float = 0.022
     load_steps: int = 20
     frames: int = 100

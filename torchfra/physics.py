@@ -13,34 +13,12 @@ interpolation in the load factor, with ``du/dlambda`` from the same factorizatio
 measured below 1e-4 mm at 10 steps, tests/test_physics.py). A pressure sensor's gain and offset act
 on that frame-to-load map only (the true pressure is ``gain * recorded + offset``).
 
-Parameter coordinates and priors (Gaussian in the coordinate, truncated to the admissible range):
-
-=================  ========  ===============================  ======================  =============
-parameter          coord.    prior                            null                    candidate
-=================  ========  ===============================  ======================  =============
-C10 (MPa)          log       log C10 ~ N(log 0.0068, 0.5^2)   (base)                  base model
-C01 (MPa)          linear    N(0, 0.003^2)                    0                       mooney_rivlin
-D1 (1/MPa)         log       N(log 1/(1000 C10), 2^2)         1/(1000 C10)            compressibility
-E_fiber (MPa)      log       N(log 31000, 2.5^2)              31000                   fiber_stiffness
-density (t/mm^3)   linear    N(0, (2e-9)^2), >= 0             0                       gravity
-c_n, c_t (mm^3/N)  linear    N(0, 2^2), >= 0                  0 (clamp)               compliant_base
-pressure_gain      linear    N(1, 0.2^2), > 0                 1                       pressure_sensor
-pressure_offset    linear    N(0, 0.003^2) MPa                0                       pressure_sensor
-delta_y (mm)       linear    N(0, 0.4^2), in [-1, 0.5]        0                       cavity_offset
-fiber_pitch (deg)  linear    N(2, 0.5^2), in [1, 4]           2 (the drawn pitch)     fiber_pitch
-g1 (1)             linear    N(0, 0.3^2), in [0, 0.95]        0                       viscoelasticity
-tau1 (duration)    log       log tau1 ~ N(log 0.1, 1.5^2)     (none: see below)       viscoelasticity
-pressure_lag       linear    N(0, 0.05^2), in [-0.2, 0.2]     0                       (viscoelasticity's rival)
-=================  ========  ===============================  ======================  =============
+Parameters, their coordinates, priors and null values: the registry :mod:`torchfra.actuator.candidates`.
 
 Viscoelasticity (:mod:`torchfra.actuator.history`) acts on the frame-to-load map only, like the pressure
 sensor: the body creeps, and each frame is read off the relaxed (elastic) model at its effective
 load level. Its parameters need no FE solve of their own (solves are keyed by the parameters the FE
-model sees). ``tau1`` has no null: at ``g1 = 0`` it has no effect, so the score test of the
-candidate is the one of ``g1`` at the prior's ``tau1`` (:data:`NUISANCE`), and a refit frees both.
-
-A compliant base is evaluated at c = 1e-4 mm^3/N in place of its null (the clamp has no spring
-dofs): the base then moves by ~1e-6 mm, far below any DIC noise.
+model sees).
 """
 from __future__ import annotations
 
@@ -54,126 +32,25 @@ import numpy as np
 import torch
 
 from torchfra import fem
-from torchfra.actuator.candidates import fiber_pitch_parameter
-from torchfra.actuator.geometry import CAVITY_OFFSET, ActuatorGeometry, build_actuator_model
-from torchfra.actuator.history import G1, LAG, TAU1, creep_load, delayed_load, normalized_time
+from torchfra.actuator.candidates import (
+    ACTUATOR_ONLY,
+    BULK_RATIO,
+    CANDIDATE_PARAMETERS,
+    COORDINATES,
+    E_FIBER,
+    GRAVITY_DIRECTION,
+    HISTORY_DEPENDENT_CANDIDATES,
+    LOAD_MAP_ONLY,
+    SECANT_STEPS,
+    Coordinate,
+    actuator_model,
+    null_coordinate,
+)
+from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
+from torchfra.actuator.history import creep_load, delayed_load, normalized_time
 from torchfra.fem.sensitivity import sensitivities
 from torchfra.observation.operator import ObservationError, ObservationOperator, visible_faces
 from torchfra.observation.recording import Recording, RecordingError
-
-BULK_RATIO = 1000.0
-E_FIBER = 31000.0
-SPRING_NULL = 1e-4  # mm^3/N: the clamp's stand-in when a compliant base is switched on
-
-
-@dataclass(frozen=True)
-class Coordinate:
-    """A free parameter: natural ``name``, coordinate ``transform`` ("log" or "linear"), Gaussian
-    prior (mean, std) in the coordinate, admissible natural range, null (natural; None for the base
-    model's own parameters), the candidate it belongs to."""
-
-    name: str
-    unit: str
-    transform: str
-    prior_mean: float
-    prior_std: float
-    low: float
-    high: float
-    null: float | None
-    candidate: str
-
-    def natural(self, z):
-        return torch.exp(z) if self.transform == "log" else z
-
-    def coordinate(self, x: float) -> float:
-        return math.log(x) if self.transform == "log" else float(x)
-
-    def clip(self, z: float) -> float:
-        lo = self.coordinate(self.low) if not (self.transform == "log" and self.low <= 0) else -math.inf
-        hi = self.coordinate(self.high) if math.isfinite(self.high) else math.inf
-        return float(min(max(z, lo), hi))
-
-    def log_prior_normalizer(self) -> float:
-        """log of the prior mass inside the admissible range (the truncation's normalization)."""
-        from scipy.stats import norm
-
-        lo = self.coordinate(self.low) if not (self.transform == "log" and self.low <= 0) else -math.inf
-        hi = self.coordinate(self.high) if math.isfinite(self.high) else math.inf
-        mass = norm.cdf(hi, self.prior_mean, self.prior_std) - norm.cdf(lo, self.prior_mean, self.prior_std)
-        return math.log(max(mass, 1e-300))
-
-
-C10_PRIOR_MEAN = 0.0068
-FIBER_PITCH = fiber_pitch_parameter()
-COORDINATES = {
-    c.name: c
-    for c in (
-        Coordinate("C10", "MPa", "log", math.log(C10_PRIOR_MEAN), 0.5, 0.0, math.inf, None, "base"),
-        Coordinate("C01", "MPa", "linear", 0.0, 0.003, -0.003, 0.05, 0.0, "mooney_rivlin"),
-        Coordinate("D1", "1/MPa", "log", math.log(1 / (BULK_RATIO * C10_PRIOR_MEAN)), 2.0, 0.0, 1e4, None,
-                   "compressibility"),
-        Coordinate("E_fiber", "MPa", "log", math.log(E_FIBER), 2.5, 0.0, 1e6, E_FIBER, "fiber_stiffness"),
-        Coordinate("density", "t/mm^3", "linear", 0.0, 2e-9, 0.0, 2.5e-8, 0.0, "gravity"),
-        Coordinate("c_n", "mm^3/N", "linear", 0.0, 2.0, SPRING_NULL, 1e3, 0.0, "compliant_base"),
-        Coordinate("c_t", "mm^3/N", "linear", 0.0, 2.0, SPRING_NULL, 1e3, 0.0, "compliant_base"),
-        Coordinate("pressure_gain", "1", "linear", 1.0, 0.2, 0.2, 5.0, 1.0, "pressure_sensor"),
-        Coordinate("pressure_offset", "MPa", "linear", 0.0, 0.003, -0.02, 0.02, 0.0, "pressure_sensor"),
-        Coordinate("delta_y", "mm", "linear", 0.0, 0.4, CAVITY_OFFSET.low, CAVITY_OFFSET.high, 0.0, "cavity_offset"),
-        Coordinate("fiber_pitch", FIBER_PITCH.unit, "linear", FIBER_PITCH.null, 0.5, FIBER_PITCH.low, FIBER_PITCH.high,
-                   FIBER_PITCH.null, "fiber_pitch"),
-        Coordinate("g1", G1.unit, "linear", 0.0, 0.3, G1.low, G1.high, 0.0, "viscoelasticity"),
-        Coordinate("tau1", TAU1.unit, "log", math.log(0.1), 1.5, TAU1.low, TAU1.high, 0.1, "viscoelasticity"),
-        Coordinate("pressure_lag", LAG.unit, "linear", 0.0, 0.05, LAG.low, LAG.high, 0.0, "pressure_lag"),
-    )
-}
-CANDIDATE_PARAMETERS = {
-    "mooney_rivlin": ("C01",), "compressibility": ("D1",), "fiber_stiffness": ("E_fiber",),
-    "gravity": ("density",), "compliant_base": ("c_n", "c_t"), "pressure_sensor": ("pressure_gain", "pressure_offset"),
-    "cavity_offset": ("delta_y",), "fiber_pitch": ("fiber_pitch",), "viscoelasticity": ("g1", "tau1"), "pressure_lag": ("pressure_lag",),
-}
-# parameters whose sensitivity is a central secant over this step (in the coordinate), not the exact
-# derivative: a pitch change slides the fiber nodes through the bricks (~100 mm per deg at the
-# helices' ends), so the discrete model's response carries a ripple whose exact slope dwarfs the
-# physical one (on the proof suite's grid and ramp, results/study_fiber_pitch.json: |dY/d pitch| 1935
-# exact at the null against 3.8-4.3 as secants over +-0.05 to +-0.25 deg at resolution 1, 249 against
-# 2.0 at resolution 2); the secant over half the prior's std sees the physics
-SECANT_STEPS = {"fiber_pitch": 0.25}
-# parameters whose effect changes its shape, not only its size, as it grows from the null: the
-# derivative at the null is then a poor direction for the score test, and the candidate is also
-# tested along the secant from the null to a point this many prior standard deviations away. A fiber
-# near inextensible (31 GPa) stretches where a compliant one would, but not in proportion: on the
-# actuator (resolution 1, 6 frames to 0.02 MPa, C10 projected out) the derivative captures 0.27 of a
-# 60 MPa fiber's effect and 0.23 of a 20 MPa one's, derivative and secant (to 209 MPa) together
-# 0.998 and 0.991 (tests/test_discovery.py::test_a_compliant_fibers_effect_lies_in_its_derivative_and_secant).
-# Measured in a CalculiX recording: a 60 MPa fiber at SNR 8.9 after the base fit scored p = 0.14 on
-# its derivative alone. A bulk's compliance keeps its shape: the derivative in log D1 captures
-# 0.96-0.99 of K/mu from 100 down to 1.5, so D1 needs no secant
-FAR_SECANTS = {"E_fiber": -2.0}
-# parameters that only act through the frame-to-load map: no FE solve depends on them
-LOAD_MAP_ONLY = ("g1", "tau1", "pressure_lag")
-# parameters identified only away from another's null (tau1 only once g1 != 0): never score-tested,
-# held at their prior mean (the value in COORDINATES' null) by the score test, freed in a refit
-NUISANCE = {"tau1": "g1"}
-HISTORY_DEPENDENT_CANDIDATES = ("viscoelasticity", "pressure_lag")
-# not physics of the body but its rival: a cavity pressure lagging the sensor makes viscoelasticity's
-# loop (history.delayed_load); fitted beside it, never named as a discovery
-RIVALS = {"viscoelasticity": "pressure_lag"}
-GRAVITY_DIRECTION = (0.0, -1.0, 0.0)  # the actuator lies on its side, bending in the camera's plane
-
-
-def null_coordinate(name: str, c10: float) -> float:
-    """The coordinate at which parameter ``name`` switches its candidate off (base-model value)."""
-    if name == "D1":
-        return math.log(1.0 / (BULK_RATIO * c10))
-    if name in ("c_n", "c_t"):
-        return SPRING_NULL
-    return COORDINATES[name].coordinate(COORDINATES[name].null)
-
-
-# candidates that need the paper's actuator: a base face to put springs under, a cavity to move
-ACTUATOR_ONLY = {"compliant_base": "it puts springs under the actuator's base face instead of its clamp",
-                 "cavity_offset": "it moves the actuator's cavity by a morph of its mesh",
-                 "fiber_pitch": "it winds the actuator's fiber helices at another pitch"}
 
 
 @dataclass(frozen=True)
@@ -242,11 +119,7 @@ class ActuatorPhysics:
         material = fem.MooneyRivlin() if "mooney_rivlin" in self.candidates else None
         self.deck_values, self.deck_digest = (None, None) if deck is None else deck.values()
         if deck is None:
-            self.model, self.info = build_actuator_model(
-                ActuatorGeometry(resolution=self.resolution), material=material,
-                base="compliant" if "compliant_base" in self.candidates else "clamp",
-                gravity=GRAVITY_DIRECTION if "gravity" in self.candidates else None,
-                cavity_offset="cavity_offset" in self.candidates, fiber_pitch="fiber_pitch" in self.candidates)
+            self.model, self.info = actuator_model(self.candidates, self.resolution)
             faces = None
         else:
             self.model, self.info = self._deck_model(material)

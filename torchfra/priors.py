@@ -3,7 +3,7 @@
 A parameter set says which of the actuator model's parameters are uncertain (each with a prior on
 the parameter itself) and which take fixed values; every other parameter keeps its base-model value
 (``D1 = 1 / (bulk_ratio C10)``, ``E_fiber = 31000`` MPa, candidates at their null). Names, units and
-admissible ranges come from the registry :data:`torchfra.physics.COORDINATES`; no name is hard-wired
+admissible ranges come from the registry :data:`torchfra.actuator.candidates.COORDINATES`; no name is hard-wired
 elsewhere.
 
 Priors, written ``NAME=KIND:A,B`` on the command line or in a TOML file:
@@ -30,10 +30,19 @@ from pathlib import Path
 
 import torch
 
+from torchfra.actuator.candidates import (
+    ADDED_MODEL_PARAMETERS,
+    BULK_RATIO,
+    COORDINATES,
+    E_FIBER,
+    SENSOR_PARAMETERS,
+    actuator_model,
+    candidates_of,
+)
+
 KINDS = ("lognormal", "normal", "uniform")
 # parameters that act on the frames' load factors, not on the FE solve (the candidate that carries them)
-SENSOR = {"pressure_gain": "pressure_sensor", "pressure_offset": "pressure_sensor", "g1": "viscoelasticity",
-          "tau1": "viscoelasticity", "pressure_lag": "viscoelasticity's rival"}
+SENSOR = SENSOR_PARAMETERS
 TAIL = 4.0  # a normal prior's mean +- TAIL stds (and a lognormal's matching quantiles) must be admissible
 
 
@@ -41,18 +50,12 @@ class PriorError(ValueError):
     """A parameter set that cannot be used; the message names the parameter and what to do."""
 
 
-def _registry():
-    from torchfra.physics import COORDINATES
-
-    return COORDINATES
-
-
 def _known() -> str:
-    return ", ".join(sorted(_registry()))
+    return ", ".join(sorted(COORDINATES))
 
 
 def _info(name: str, where: str):
-    reg = _registry()
+    reg = COORDINATES
     if name not in reg:
         raise PriorError(f"{where}: unknown parameter '{name}'; the model's parameters are {_known()}")
     return reg[name]
@@ -78,7 +81,7 @@ class Prior:
 
     @property
     def unit(self) -> str:
-        return _registry()[self.name].unit
+        return COORDINATES[self.name].unit
 
     @property
     def gaussian(self) -> tuple[float, float]:
@@ -260,28 +263,14 @@ class ParameterSet:
     # -- the FE model -------------------------------------------------------------------------------
     def candidates(self) -> tuple[str, ...]:
         """Candidate physics the model must switch on to carry these parameters."""
-        from torchfra.physics import CANDIDATE_PARAMETERS
-
-        names = set(self.names) | {n for n, _ in self.fixed}
-        on = {c for c, ps in CANDIDATE_PARAMETERS.items() if names & set(ps) and c not in ("compressibility",
-                                                                                          "fiber_stiffness")}
-        return tuple(sorted(on))
+        return candidates_of(set(self.names) | {n for n, _ in self.fixed})
 
     def build_model(self, resolution: int, integration: str = "full"):
         """The actuator model with the candidates these parameters need, and its info."""
-        from torchfra import fem
-        from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
-        from torchfra.physics import GRAVITY_DIRECTION
+        return actuator_model(self.candidates(), resolution, integration)
 
-        on = self.candidates()
-        return build_actuator_model(ActuatorGeometry(resolution=resolution), integration=integration,
-                                    material=fem.MooneyRivlin() if "mooney_rivlin" in on else None,
-                                    base="compliant" if "compliant_base" in on else "clamp",
-                                    gravity=GRAVITY_DIRECTION if "gravity" in on else None,
-                                    cavity_offset="cavity_offset" in on, fiber_pitch="fiber_pitch" in on)
-
-    def model_parameters(self, Q: torch.Tensor, pressure: float, bulk_ratio: float = 1000.0,
-                         E_fiber: float = 31000.0, base: dict | None = None) -> dict[str, torch.Tensor]:
+    def model_parameters(self, Q: torch.Tensor, pressure: float, bulk_ratio: float = BULK_RATIO,
+                         E_fiber: float = E_FIBER, base: dict | None = None) -> dict[str, torch.Tensor]:
         """Every FE model parameter, name -> (N,), of coordinates Q (N, d): uncertain ones from Q, fixed
         ones as given, the rest at the base model's values (D1 tied to C10 by ``bulk_ratio``).
 
@@ -306,14 +295,14 @@ class ParameterSet:
         p = {"C10": c10, "D1": values["D1"] if "D1" in values else 1.0 / (bulk_ratio * c10),
              "E_fiber": values.get("E_fiber", torch.full((N,), E_fiber, dtype=torch.float64)),
              "P": torch.full((N,), pressure, dtype=torch.float64)}
-        for n in ("C01", "density", "c_n", "c_t", "delta_y", "fiber_pitch"):
+        for n in ADDED_MODEL_PARAMETERS:
             if n in values:
                 p[n] = values[n]
         return p
 
     def values(self, truth: dict, where: str = "truth") -> torch.Tensor:
         """Coordinates (1, d) of parameter values given by name; a missing one takes its null value."""
-        reg = _registry()
+        reg = COORDINATES
         row = {}
         for p in self.priors:
             if p.name in truth:
@@ -396,6 +385,6 @@ def parse_truth(items) -> dict[str, float]:
     return out
 
 
-def paper_prior(mean: float, std: float, E_fiber: float = 31000.0) -> ParameterSet:
+def paper_prior(mean: float, std: float, E_fiber: float = E_FIBER) -> ParameterSet:
     """The paper's one-parameter prior: C10 lognormal, E_fiber fixed (paper §4)."""
     return ParameterSet((Prior("C10", "lognormal", mean, std),), (("E_fiber", E_fiber),))

@@ -101,6 +101,7 @@ import numpy as np
 import torch
 
 from torchfra import fem
+from torchfra.actuator.candidates import BULK_RATIO, E_FIBER
 from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
 from torchfra.fem.materials import Material, ParameterError
 from torchfra.observation.operator import ObservationOperator, frame_times, regular_grid, visible_faces
@@ -108,8 +109,6 @@ from torchfra.observation.recording import Recording
 
 PRESSURE_MAX = 0.022  # MPa, the largest recorded pressure (paper §4)
 VISCO_TAU1 = 0.1  # relaxation time of the viscoelastic scenarios, in units of the trace's duration
-BULK_RATIO = 1000.0  # K / mu of the base model: D1 = 1 / (BULK_RATIO C10)
-E_FIBER = 31000.0  # MPa
 BASE_REGION_HEIGHT = 10.0  # mm: stiff_base_region covers the elements with centroid z below this
 DEBOND_CENTRE = 30.0  # mm: z of the middle of the debonded fiber stretch
 DEBOND_MODULUS = 31.0  # MPa, what the debonded stretch still carries
