@@ -18,9 +18,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from torchfra.actuator.deck import deck_summary  # noqa: E402
 from torchfra.calibration import synthetic_recording  # noqa: E402
 from torchfra.cli import add_deck_flags, check_deck_flags  # noqa: E402
-from torchfra.forward import ForwardConfig, deck_summary, with_deck  # noqa: E402
+from torchfra.forward import ForwardConfig, with_deck  # noqa: E402
 from torchfra.io.recordings import write_recording  # noqa: E402
 from torchfra.observation.operator import frame_times  # noqa: E402
 from torchfra.priors import parse_fixed  # noqa: E402

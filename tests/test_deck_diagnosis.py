@@ -19,6 +19,7 @@ import torch
 from helpers import load_script
 
 from torchfra import fem
+from torchfra.actuator.deck import DeckModel
 from torchfra.discovery import DiagnosisError, diagnose
 from torchfra.fem.elements import HEX20_FACES  # noqa: F401  (face numbering of the deck's surfaces)
 from torchfra.fem.structured import box_mesh
@@ -27,7 +28,6 @@ from torchfra.io.abaqus.write import write_inp
 from torchfra.io.recordings import write_recording
 from torchfra.observation.operator import ObservationOperator, visible_faces
 from torchfra.observation.recording import Recording
-from torchfra.physics import DeckModel
 
 C10, P_MAX, DENSITY, SIGMA = 0.05, 5e-4, 1e-9, 0.005
 GRAVITY = (-1.0, 0.0, 0.0)

@@ -11,7 +11,8 @@ import torch
 from helpers import load_script
 from test_read_inp import HAND_DECK
 
-from torchfra.forward import ForwardConfig, observed_faces, read_deck, run_forward, with_deck
+from torchfra.actuator.deck import observed_faces, read_deck
+from torchfra.forward import ForwardConfig, run_forward, with_deck
 from torchfra.io.abaqus.read import read_inp
 
 forward_uq = load_script("forward_uq")
@@ -68,7 +69,7 @@ def test_a_changed_deck_is_another_run_and_bad_deck_settings_are_named(deck, tmp
     with pytest.raises(ValueError, match="no such deck file"):
         with_deck(ForwardConfig(inp=str(tmp_path / "nope.inp"), parameters=[PRIOR]))
     with pytest.raises(ValueError, match="no such surface \\(its surfaces: DLOAD_P\\)"):
-        observed_faces(read_deck(deck)[0].mesh, ForwardConfig(inp=str(deck), face="TOP"))
+        observed_faces(read_deck(deck)[0].mesh, "+x", "TOP")
     with pytest.raises(ValueError, match="is a folder"):
         with_deck(ForwardConfig(inp=str(tmp_path), parameters=[PRIOR]))
     nan = tmp_path / "nan.inp"

@@ -25,8 +25,9 @@ import scipy.sparse as sp
 import torch
 
 from torchfra import fem
+from torchfra.actuator.deck import observed_faces
 from torchfra.assimilation.filters import PolynomialSlave
-from torchfra.forward import ForwardConfig, forward_model, observed_faces, parameter_set, with_deck
+from torchfra.forward import ForwardConfig, forward_model, parameter_set, with_deck
 from torchfra.observation.operator import ObservationError, ObservationOperator, frame_times, visible_faces
 from torchfra.observation.recording import Recording, RecordingError
 
@@ -220,7 +221,7 @@ class ActuatorSolver:
         self.model, self.info, self.deck_values = forward_model(self.fwd)
         self.model.finalize()
         self.mesh = self.model.mesh
-        self.faces = observed_faces(self.mesh, self.fwd)
+        self.faces = observed_faces(self.mesh, self.fwd.camera, self.fwd.face)
         self.operator = None if rec is None else recording_operator(self.mesh, rec, faces=self.faces)
 
     def params(self, c10) -> dict[str, torch.Tensor]:

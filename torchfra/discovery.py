@@ -78,8 +78,9 @@ from torchfra.actuator.candidates import (
     NUISANCE,
     RIVALS,
 )
+from torchfra.actuator.deck import DeckModel
 from torchfra.observation.recording import Recording, RecordingError
-from torchfra.physics import ActuatorPhysics, DeckModel, Evaluation, HistoryPhysics
+from torchfra.physics import ActuatorPhysics, Evaluation, HistoryPhysics
 
 ALL_CANDIDATES = tuple(sorted(set(CANDIDATE_PARAMETERS) - set(RIVALS.values())))
 MAX_PRESSURE = 0.5  # MPa: beyond any pressure the soft actuator survives (a unit mistake)

@@ -10,7 +10,6 @@ K/mu = ``bulk_ratio`` (D1 = 1 / (bulk_ratio C10)), so every member is equally in
 """
 from __future__ import annotations
 
-import functools
 import json
 import os
 import socket
@@ -24,7 +23,8 @@ import torch
 
 from torchfra import fem
 from torchfra.actuator.candidates import BULK_RATIO, E_FIBER, KAPPA_T
-from torchfra.observation.operator import ObservationOperator, frame_times, interpolate_in_time, visible_faces
+from torchfra.actuator.deck import CAMERAS, deck_summary, observed_faces, read_deck
+from torchfra.observation.operator import ObservationOperator, frame_times, interpolate_in_time
 from torchfra.priors import ParameterSet, lognormal_parameters, paper_prior
 
 
@@ -83,54 +83,6 @@ class ForwardConfig:
     face: str = ""  # a deck's *SURFACE to observe instead of every face the camera sees
 
 
-CAMERAS = {"+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0)}
-
-
-def read_deck(path) -> tuple[fem.Model, dict[str, float], str]:
-    """A deck's model, its parameter values and a digest of what it holds (nodes, elements, terms,
-    constraints, values: an ``*INCLUDE``d file that changed changes it)."""
-    import hashlib
-
-    from torchfra.io.abaqus.read import read_inp
-
-    path = _deck_path(path)
-    model, values = read_inp(path)
-    model.finalize()
-    h = hashlib.sha256()
-    T = model.dofmap.T
-    for arr in (model.X, model.mesh.elements, model.clamped_dofs, T.indptr, T.indices, T.data):
-        h.update(np.ascontiguousarray(arr).tobytes())
-    for t in model.terms:
-        h.update(type(t).__name__.encode())
-        h.update(np.ascontiguousarray(t.dofs).tobytes())
-    h.update(json.dumps(values, sort_keys=True).encode())
-    return model, values, h.hexdigest()[:16]
-
-
-def _deck_path(path) -> Path:
-    path = Path(path)
-    if path.is_dir():
-        raise ValueError(f"--inp {path}: is a folder; give the deck's .inp file")
-    if not path.is_file():
-        raise ValueError(f"--inp {path}: no such deck file")
-    return path
-
-
-@functools.lru_cache(maxsize=8)
-def _deck_summary(path: str, mtime_ns: int, size: int) -> tuple[dict[str, float], str]:
-    _, values, digest = read_deck(path)
-    return values, digest
-
-
-def deck_summary(path) -> tuple[dict[str, float], str]:
-    """``read_deck``'s values and digest, read once per version of the file in a process (the
-    scripts ask for them at several steps)."""
-    path = _deck_path(path)
-    st = path.stat()
-    values, digest = _deck_summary(str(path.resolve()), st.st_mtime_ns, st.st_size)
-    return dict(values), digest
-
-
 def with_deck(config):
     """``config`` with its deck read: ``inp_digest`` set, ``pressure`` the deck's ``P`` (a deck must
     load its cavity or faces by one pressure, the recording's). Without a deck, ``config`` itself."""
@@ -177,22 +129,12 @@ def forward_model(config) -> tuple[fem.Model, dict, dict[str, float] | None]:
     return model, info, values
 
 
-def observed_faces(mesh, config) -> np.ndarray | str:
-    """The faces the camera of ``config`` sees (or the deck's named surface)."""
-    if config.face:
-        if config.face.upper() not in mesh.face_sets:
-            raise ValueError(f"--face {config.face}: the deck has no such surface (its surfaces: "
-                             f"{', '.join(sorted(mesh.face_sets)) or 'none'})")
-        return config.face.upper()
-    return visible_faces(mesh, CAMERAS[config.camera])
-
-
 def observed_surface(config):
     """The observed faces of ``config``'s model as a registration target (DIC points are placed on it)."""
     from torchfra.observation.registration import mesh_face
 
     model = forward_model(config)[0]
-    return mesh_face(model.mesh, faces=observed_faces(model.mesh, config))
+    return mesh_face(model.mesh, faces=observed_faces(model.mesh, config.camera, config.face))
 
 
 def parameter_set(config) -> ParameterSet:
@@ -472,7 +414,7 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
         config = replace(config, method="full")
     _check_resume(run_dir, config)
     mesh = model.mesh
-    operator = ObservationOperator(mesh, observed_faces(mesh, config), points="nodes")
+    operator = ObservationOperator(mesh, observed_faces(mesh, config.camera, config.face), points="nodes")
     params = member_parameters(config, base)
     load = np.arange(1, config.load_steps + 1) / config.load_steps
     chunks_dir = run_dir / "members"

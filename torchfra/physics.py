@@ -33,12 +33,10 @@ import torch
 
 from torchfra import fem
 from torchfra.actuator.candidates import (
-    ACTUATOR_ONLY,
     BULK_RATIO,
     CANDIDATE_PARAMETERS,
     COORDINATES,
     E_FIBER,
-    GRAVITY_DIRECTION,
     HISTORY_DEPENDENT_CANDIDATES,
     LOAD_MAP_ONLY,
     SECANT_STEPS,
@@ -46,43 +44,12 @@ from torchfra.actuator.candidates import (
     actuator_model,
     null_coordinate,
 )
+from torchfra.actuator.deck import DeckModel, observed_faces
 from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
 from torchfra.actuator.history import creep_load, delayed_load, normalized_time
 from torchfra.fem.sensitivity import sensitivities
 from torchfra.observation.operator import ObservationError, ObservationOperator, visible_faces
 from torchfra.observation.recording import Recording, RecordingError
-
-
-@dataclass(frozen=True)
-class DeckModel:
-    """The user's own model, an Abaqus/CalculiX deck (``torchfra.io.read_inp``), as the diagnosis'
-    base model: ``camera`` the side it is observed from (``forward.CAMERAS``), ``face`` the deck's
-    *SURFACE the camera observes (None: every face it sees), ``gravity`` the direction of the weight
-    for the gravity candidate. Its parameter values (C10, D1, E_fiber) are the base model's: the
-    prior of C10 is centred on the deck's, compressibility keeps the deck's K/mu at its null, and
-    the fibers' null is the deck's E_fiber."""
-
-    path: str
-    camera: str = "+x"
-    face: str | None = None
-    gravity: tuple[float, float, float] = GRAVITY_DIRECTION
-
-    def values(self) -> tuple[dict[str, float], str]:
-        from torchfra.forward import deck_summary
-
-        return deck_summary(self.path)
-
-    def available(self, candidates) -> dict[str, str]:
-        """The candidates this deck cannot carry, with why."""
-        values, _ = self.values()
-        out = {c: f"not for a deck: {why}" for c, why in ACTUATOR_ONLY.items() if c in candidates}
-        if "fiber_stiffness" in candidates and "E_fiber" not in values:
-            out["fiber_stiffness"] = "the deck has no fibers (no truss elements with *ELASTIC)"
-        if "mooney_rivlin" in candidates and "C01" in values:
-            out["mooney_rivlin"] = "the deck's material is Mooney-Rivlin already (its C01 is a base-model value)"
-        if "gravity" in candidates and "density" in values:
-            out["gravity"] = "the deck carries its weight already (*DLOAD GRAV)"
-        return out
 
 
 @dataclass
@@ -123,7 +90,7 @@ class ActuatorPhysics:
             faces = None
         else:
             self.model, self.info = self._deck_model(material)
-            faces = _deck_faces(self.model.mesh, deck)
+            faces = observed_faces(self.model.mesh, deck.camera, deck.face)
         self.model.finalize()
         self.mesh = self.model.mesh
         faces = visible_faces(self.mesh, (1.0, 0.0, 0.0)) if faces is None else faces
@@ -384,12 +351,6 @@ class ActuatorPhysics:
             (a, Ya), = sides.items()
             return (Ya - Y) / (a - z[name])
         return np.full(Y.shape, np.nan)
-
-
-def _deck_faces(mesh, deck: DeckModel):
-    from torchfra.forward import ForwardConfig, observed_faces
-
-    return observed_faces(mesh, ForwardConfig(inp=deck.path, camera=deck.camera, face=deck.face or ""))
 
 
 def _derivative(fn, z: dict[str, torch.Tensor], name: str) -> np.ndarray:
