@@ -12,7 +12,7 @@ Suite ``ensemble`` (issue "Forward ensembles in minutes"): the old path (full Ne
 one (fem.reduced: snapshots, hyper-reduced Newton, check, fallback) side by side on one ensemble, with the
 accuracy of every compared member; see ENSEMBLE_DEFINITIONS.
 
-Suite ``forward`` (issue 3, "Performance"): the prior ensemble of torchfra.forward on the actuator mesh,
+Suite ``forward`` (issue 3, "Performance"): the prior ensemble of torchfra.calibration.forward on the actuator mesh,
 one member alone vs. M members in one batched fem.solve; see FORWARD_DEFINITIONS.
 
 Prints one JSON document (``definitions`` in it says what every timing means) and writes it to
@@ -614,7 +614,7 @@ FORWARD_TARGET_EFFICIENCY = 5.0  # issue 3: batching efficiency >= 5x
 
 FORWARD_DEFINITIONS = {
     "problem": "build_actuator_model(ActuatorGeometry(resolution=--mesh)) (hybrid Hex20 body + embedded fiber "
-    "trusses, clamped base, rigid top, cavity pressure P); parameters = torchfra.forward.member_parameters("
+    "trusses, clamped base, rigid top, cavity pressure P); parameters = torchfra.calibration.forward.member_parameters("
     "ForwardConfig(members=M, resolution=--mesh)) (prior C10 draws, seed 0, D1 = 1/(bulk_ratio C10), E_fiber, "
     "P = full pressure); load factors (1..load_steps)/load_steps as run_forward; NewtonOptions(**ForwardConfig().newton).",
     "single": "wall time of fem.solve(model, params[0:1], load, options): member 0 of the ensemble solved alone.",
@@ -659,7 +659,8 @@ def forward_solution_record(sol, wall: float) -> dict:
 
 def forward_suite(cfg: Config, args) -> dict:
     from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
-    from torchfra.forward import ForwardConfig, member_parameters
+    from torchfra.calibration.config import ForwardConfig
+    from torchfra.calibration.forward import member_parameters
 
     M = args.forward_members
     fcfg = ForwardConfig(members=M, resolution=args.mesh, load_steps=args.load_steps, threads=args.threads)
@@ -761,7 +762,7 @@ def sensitivity_suite(cfg: Config, args) -> dict:
 
 
 ENSEMBLE_DEFINITIONS = {
-    "problem": "the forward suite's actuator and prior (torchfra.forward.member_parameters, seed 0, --members M, "
+    "problem": "the forward suite's actuator and prior (torchfra.calibration.forward.member_parameters, seed 0, --members M, "
     "--mesh); --vary NAME=S also draws that parameter per member as its ForwardConfig value x lognormal(0, S) "
     "(a multi-parameter prior, beyond the one-parameter P/C10 scaling law). Load factors (1..load_steps)/load_steps.",
     "old": "the full path as run_forward(method='full') runs it: fem.solve of one member at a time (chunk = 1), "
@@ -789,8 +790,9 @@ ENSEMBLE_DEFINITIONS = {
 
 def ensemble_suite(cfg: Config, args) -> dict:
     from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
+    from torchfra.calibration.config import ForwardConfig
+    from torchfra.calibration.forward import member_parameters
     from torchfra.fem.reduced import solve_ensemble
-    from torchfra.forward import ForwardConfig, member_parameters
     from torchfra.observation.operator import ObservationOperator, visible_faces
 
     M = args.forward_members

@@ -29,20 +29,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
-from torchfra.calibration import (  # noqa: E402
+from torchfra.calibration.config import (  # noqa: E402
     SEED,
     CalibrationConfig,
-    RestartRanks,
-    forward_config,
-    forward_dir,
-    run_calibration,
-    serve_restart,
-    validate_recording,
+    ForwardConfig,  # noqa: E402
 )
+from torchfra.calibration.experiment import run_calibration  # noqa: E402
+from torchfra.calibration.forward import forward_config, forward_dir, observed_surface, run_forward  # noqa: E402  # noqa: E402
+from torchfra.calibration.frames import validate_recording  # noqa: E402
+from torchfra.calibration.priors import ParameterSet, parse_truth, read_parameter_file  # noqa: E402
+from torchfra.calibration.restart import RestartRanks, serve_restart  # noqa: E402
 from torchfra.cli import add_deck_flags, check_deck_flags  # noqa: E402
-from torchfra.forward import ForwardConfig, observed_surface, run_forward  # noqa: E402
 from torchfra.io.dic.importer import add_arguments, recording_path  # noqa: E402
-from torchfra.priors import ParameterSet, parse_truth, read_parameter_file  # noqa: E402
 from torchfra.report.calibration import write_calibration_outputs  # noqa: E402
 from torchfra.runtime.distributed import finish, ranks  # noqa: E402
 
@@ -61,7 +59,7 @@ def _free_port() -> int:
 def forward_ranks(config: CalibrationConfig, run_dir: Path, n: int, argv: list[str]):
     """The forward ensemble and the restart filter on ``n`` processes through torch.distributed
     (gloo, this machine): this process becomes rank 0 of the group, and ranks 1..n-1 are this script
-    again with the same arguments, which solve their share of the forward members (torchfra.forward)
+    again with the same arguments, which solve their share of the forward members (torchfra.calibration.forward)
     and then of every restart forecast (``calibration.serve_restart``), and leave at rank 0's stop.
     Yields the :class:`RestartRanks` to hand to ``run_calibration`` (None: no other rank; none is
     started when the ensemble is on disk and the restart filter is off). On the way out the stop is
@@ -133,7 +131,7 @@ def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", default="seed",
                    help="named settings to start from (seed: the paper's experiment), or a TOML file of priors "
-                        "([parameters], optional [fixed] and [truth] tables; see torchfra.priors)")
+                        "([parameters], optional [fixed] and [truth] tables; see torchfra.calibration.priors)")
     p.add_argument("--param", action="append", default=None, metavar="NAME=KIND:A,B",
                    help="an uncertain parameter and its prior for the parameter itself: lognormal:MEAN,STD, "
                         "normal:MEAN,STD or uniform:LOW,HIGH (repeat for several; default the config's C10 prior)")
@@ -203,7 +201,7 @@ def main(argv=None) -> dict:
     elif truth:
         raise ValueError("--truth sets the synthetic recording's values; a recording file has its own")
     if config.recording is None and config.parameters:
-        from torchfra.calibration import truth_values
+        from torchfra.calibration.forward import truth_values
 
         truth_values(config)  # every value checked against its prior before any FE work
     if a.no_restart:

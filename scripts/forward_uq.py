@@ -20,9 +20,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from torchfra.calibration.config import ForwardConfig  # noqa: E402
+from torchfra.calibration.forward import run_forward, with_deck  # noqa: E402
+from torchfra.calibration.priors import ParameterSet, read_parameter_file  # noqa: E402
 from torchfra.cli import add_deck_flags, check_deck_flags  # noqa: E402
-from torchfra.forward import ForwardConfig, run_forward, with_deck  # noqa: E402
-from torchfra.priors import ParameterSet, read_parameter_file  # noqa: E402
 from torchfra.report.forward import write_forward_outputs  # noqa: E402
 from torchfra.runtime.distributed import finish, ranks  # noqa: E402
 

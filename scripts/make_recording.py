@@ -19,12 +19,13 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from torchfra.actuator.deck import deck_summary  # noqa: E402
-from torchfra.calibration import synthetic_recording  # noqa: E402
+from torchfra.calibration.config import ForwardConfig  # noqa: E402
+from torchfra.calibration.forward import with_deck  # noqa: E402
+from torchfra.calibration.priors import parse_fixed  # noqa: E402
+from torchfra.calibration.synthetic import synthetic_recording  # noqa: E402
 from torchfra.cli import add_deck_flags, check_deck_flags  # noqa: E402
-from torchfra.forward import ForwardConfig, with_deck  # noqa: E402
 from torchfra.io.recordings import write_recording  # noqa: E402
 from torchfra.observation.operator import frame_times  # noqa: E402
-from torchfra.priors import parse_fixed  # noqa: E402
 
 
 def pressure_trace(frames: int, p_max: float, cycles: int) -> tuple[np.ndarray, np.ndarray]:

@@ -19,8 +19,10 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from torchfra.assimilation import hierarchical_filter  # noqa: E402
-from torchfra.calibration import CalibrationConfig, ensemble_stats, run_calibration  # noqa: E402
-from torchfra.priors import parse_truth  # noqa: E402
+from torchfra.calibration.config import CalibrationConfig  # noqa: E402
+from torchfra.calibration.exact import ensemble_stats  # noqa: E402
+from torchfra.calibration.experiment import run_calibration  # noqa: E402
+from torchfra.calibration.priors import parse_truth  # noqa: E402
 
 
 def main(argv=None) -> dict:

@@ -37,8 +37,9 @@ from tqdm import tqdm
 
 from torchfra import fem
 from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
+from torchfra.calibration.config import ForwardConfig
+from torchfra.calibration.forward import member_parameters
 from torchfra.fem.reduced import build_reduced, select_snapshots, solve_reduced
-from torchfra.forward import ForwardConfig, member_parameters
 from torchfra.report.tensorboard import open_writer
 
 

@@ -6,8 +6,10 @@ import json
 import numpy as np
 import pytest
 
-from torchfra import calibration
-from torchfra.calibration import CalibrationConfig, forward_dir, run_calibration
+from torchfra.calibration import restart
+from torchfra.calibration.config import CalibrationConfig
+from torchfra.calibration.experiment import run_calibration
+from torchfra.calibration.forward import forward_dir
 from torchfra.report.calibration import write_calibration_outputs
 
 CONFIG = CalibrationConfig(members=4, frames=6, pressure=0.004, load_steps=2, noise=0.05, restart_every=3,
@@ -17,7 +19,7 @@ CONFIG = CalibrationConfig(members=4, frames=6, pressure=0.004, load_steps=2, no
 def test_calibration_end_to_end_and_resume(tmp_path, monkeypatch):
     run_dir = tmp_path / "cal"
     calls = {"n": 0}
-    original = calibration.RestartForecaster.__call__
+    original = restart.RestartForecaster.__call__
 
     def interrupted(self, Q, k):
         if calls["n"] == 1:
@@ -25,7 +27,7 @@ def test_calibration_end_to_end_and_resume(tmp_path, monkeypatch):
         calls["n"] += 1
         return original(self, Q, k)
 
-    monkeypatch.setattr(calibration.RestartForecaster, "__call__", interrupted)
+    monkeypatch.setattr(restart.RestartForecaster, "__call__", interrupted)
     with pytest.raises(KeyboardInterrupt):
         run_calibration(CONFIG, run_dir, progress=False)
     assert (run_dir / "restart_checkpoint.pt").exists()
@@ -76,9 +78,10 @@ def test_reduced_restart_forecasts_match_full_newton():
     import torch
 
     from torchfra import fem
-    from torchfra.calibration import ActuatorSolver, RestartForecaster
+    from torchfra.calibration.config import ForwardConfig
+    from torchfra.calibration.frames import ActuatorSolver
+    from torchfra.calibration.restart import RestartForecaster
     from torchfra.fem.reduced import build_reduced
-    from torchfra.forward import ForwardConfig
     from torchfra.observation.operator import ObservationOperator, visible_faces
 
     solver = ActuatorSolver(1, fwd=ForwardConfig(resolution=1, pressure=0.011))

@@ -12,7 +12,8 @@ from helpers import load_script
 from test_read_inp import HAND_DECK
 
 from torchfra.actuator.deck import observed_faces, read_deck
-from torchfra.forward import ForwardConfig, run_forward, with_deck
+from torchfra.calibration.config import ForwardConfig
+from torchfra.calibration.forward import run_forward, with_deck
 from torchfra.io.abaqus.read import read_inp
 
 forward_uq = load_script("forward_uq")

@@ -10,7 +10,7 @@ import pytest
 from helpers import load_script
 
 from torchfra.actuator.geometry import ActuatorGeometry, actuator_mesh
-from torchfra.calibration import recording_operator
+from torchfra.calibration.frames import recording_operator
 from torchfra.io.dic.exports import DicError, frame_numbers, read_dic, read_frame, read_landmarks
 from torchfra.io.pressure_trace import pressure_at_frames, read_pressure_trace
 from torchfra.io.recordings import read_recording

@@ -16,7 +16,7 @@ from helpers import assert_same_json
 
 from torchfra import fem
 from torchfra.actuator.candidates import COORDINATES
-from torchfra.calibration import synthetic_recording
+from torchfra.calibration.synthetic import synthetic_recording
 from torchfra.discovery import (
     ALL_CANDIDATES,
     NOISE_FLOOR_MM,

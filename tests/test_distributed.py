@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from torchfra.forward import ForwardConfig, load_chunk, run_forward
+from torchfra.calibration.config import ForwardConfig
+from torchfra.calibration.forward import load_chunk, run_forward
 
 ROOT = Path(__file__).resolve().parents[1]
 ARGS = ["--members", "6", "--mesh", "1", "--pressure", "0.004", "--load-steps", "2", "--frames", "4",

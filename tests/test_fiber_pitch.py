@@ -158,8 +158,9 @@ def test_the_pitch_moves_with_a_morph_only_one_at_a_time():
 def test_no_hyper_reduction_and_the_forward_ensemble_goes_full(tmp_path, capsys):
     """A model with the pitch cannot be hyper-reduced (each member its own couplings): refused by
     name; a forward ensemble over a pitch prior says so and solves every member by full Newton."""
+    from torchfra.calibration.config import ForwardConfig
+    from torchfra.calibration.forward import run_forward
     from torchfra.fem.reduced import HyperReducedModel, ReducedBasis
-    from torchfra.forward import ForwardConfig, run_forward
 
     model, _ = build_actuator_model(ActuatorGeometry(resolution=1), fiber_pitch=True)
     model.finalize()

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchfra.forward import ForwardConfig, lognormal_parameters, member_parameters, run_forward
+from torchfra.calibration.config import ForwardConfig
+from torchfra.calibration.forward import lognormal_parameters, member_parameters, run_forward
 from torchfra.report.forward import write_forward_outputs
 
 
@@ -62,7 +63,7 @@ def test_forward_flags_a_member_that_does_not_converge(tmp_path, monkeypatch):
     """A member whose solve fails is flagged in status, summary and forward.npz, keeps NaN (never zeros
     or a neighbour's values) beyond the load it reached, and is left out of the summary's statistics,
     while the other member of its chunk finishes."""
-    from torchfra import forward
+    from torchfra.calibration import forward
 
     def params_with_a_hopeless_member(config, base=None):
         p = member_parameters(config, base)
@@ -142,7 +143,7 @@ def test_lock_of_a_recycled_pid_is_taken_over(tmp_path, capsys):
 def test_chunks_are_per_member_and_carry_arrays_only(tmp_path):
     """Default checkpoints hold one member each (a stop loses at most one member's work) and load
     with allow_pickle=False, residual histories intact."""
-    from torchfra.forward import load_chunk
+    from torchfra.calibration.forward import load_chunk
 
     config = ForwardConfig(members=2, resolution=1, load_steps=1, frames=10, pressure=0.002)
     assert config.chunk == 1
@@ -181,7 +182,7 @@ def test_a_reduced_batch_killed_mid_solve_resumes_after_its_last_load_step(tmp_p
     """A reduced batch checkpoints its state after every load step (``batch_*.partial.npz``, arrays
     only): a run killed inside the batch resumes it from there, says so, and ends bit-identical to an
     uninterrupted run (reference: the same ensemble solved without a kill); no checkpoint is left."""
-    from torchfra import forward
+    from torchfra.calibration import forward
 
     config = ForwardConfig(members=6, resolution=1, load_steps=3, frames=4, pressure=0.004, snapshots=2,
                            reduced_batch=4)

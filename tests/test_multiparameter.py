@@ -9,7 +9,7 @@ import torch
 
 from torchfra.assimilation import hierarchical_filter
 from torchfra.assimilation.exact_nd import TensorMap, tensor_posterior
-from torchfra.priors import ParameterSet, PriorError, lognormal_parameters, parse_prior
+from torchfra.calibration.priors import ParameterSet, PriorError, lognormal_parameters, parse_prior
 
 
 def test_priors_map_their_coordinates_and_sample_the_stated_moments():

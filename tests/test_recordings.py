@@ -10,7 +10,7 @@ import pytest
 import scipy.sparse as sp
 
 from torchfra.actuator.geometry import ActuatorGeometry, actuator_mesh
-from torchfra.calibration import forecast_at_frames, load_factors, recording_operator
+from torchfra.calibration.frames import forecast_at_frames, load_factors, recording_operator
 from torchfra.io.recordings import read_recording, write_recording
 from torchfra.observation.recording import Recording, RecordingError
 

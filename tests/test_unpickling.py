@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from torchfra import calibration
 from torchfra.assimilation import FilterResult, analysis
-from torchfra.calibration import CheckpointError, read_restart_checkpoint
+from torchfra.calibration import restart
+from torchfra.calibration.config import CalibrationConfig
+from torchfra.calibration.restart import CheckpointError, read_restart_checkpoint
 from torchfra.io.recordings import read_recording
 from torchfra.observation.recording import COLUMNS, RecordingError
 
@@ -52,13 +53,13 @@ def test_planted_restart_checkpoint_is_refused_and_never_runs(tmp_path, save):
 def test_restart_filter_refuses_a_planted_checkpoint_in_its_run_folder(tmp_path, monkeypatch):
     """The restart filter of a calibration run reads its checkpoint through the safe reader (the
     FE model is stubbed: the refusal comes before any solve)."""
-    monkeypatch.setattr(calibration, "ActuatorSolver", lambda *a, **k: None)
-    monkeypatch.setattr(calibration, "RestartForecaster", lambda *a, **k: None)
+    monkeypatch.setattr(restart, "ActuatorSolver", lambda *a, **k: None)
+    monkeypatch.setattr(restart, "RestartForecaster", lambda *a, **k: None)
     marker = tmp_path / "payload_ran"
     torch.save({"result": Payload(marker)}, tmp_path / "restart_checkpoint.pt")
-    config = calibration.CalibrationConfig(members=3, frames=4, restart_every=2)
+    config = CalibrationConfig(members=3, frames=4, restart_every=2)
     with pytest.raises(CheckpointError, match="restart_checkpoint.pt: .*delete it to start the restart filter over"):
-        calibration._restart(config, tmp_path, SimpleNamespace(n_frames=4, frames=np.arange(4)), np.ones(4),
+        restart._restart(config, tmp_path, SimpleNamespace(n_frames=4, frames=np.arange(4)), np.ones(4),
                              torch.zeros(3, 1), None, None, None, False)
     assert not marker.exists()
 
@@ -119,7 +120,7 @@ def test_no_pickle_loading_in_the_code():
 def test_planted_reduced_batch_checkpoint_is_refused_and_never_runs(tmp_path, capsys):
     """A ``batch_*.partial.npz`` (a reduced batch's per-load-step state) holding a pickle payload is
     named as unreadable and its batch solved from the start; the payload never runs."""
-    from torchfra.forward import _read_partial
+    from torchfra.calibration.forward import _read_partial
 
     marker = tmp_path / "payload_ran"
     path = tmp_path / "batch_00002.partial.npz"

@@ -271,7 +271,7 @@ def test_actuator_physics_creep_shares_the_base_solve_and_its_sensitivities_are_
 def test_forward_ensembles_refuse_load_map_parameters(text):
     """A forward ensemble solves the FE model only: a prior on a creep or lag parameter would be
     ignored by every member, so it is refused by name, pointing to the diagnosis."""
-    from torchfra.priors import PriorError, parse_fixed, parse_prior
+    from torchfra.calibration.priors import PriorError, parse_fixed, parse_prior
 
     with pytest.raises(PriorError, match="scripts/diagnose.py"):
         parse_prior(text)

@@ -13,7 +13,7 @@ accumulated once over the observations (memory and time linear in the recording,
 point). The posterior is evaluated on a coarse grid over the member box (which also measures the
 mass at its edges), then on a fine grid around the mass; moments, marginal quantiles, correlations
 and the log evidence come from the fine grid. The prior is independent normal in each coordinate
-(:class:`torchfra.priors.ParameterSet`).
+(:class:`torchfra.calibration.priors.ParameterSet`).
 """
 from __future__ import annotations
 

@@ -23,7 +23,7 @@ member's own: it is a *global* term (``global_dofs``): it returns the residual o
 (N, 3 n_nodes) and, per member, its tangent as a sparse matrix ``T^T K_f T`` (``K_f``: the
 trusses' block tangent, ``T``: the embedding map), which :class:`Model` adds after the block
 assembly. Hyper-reduction (ECSW samples blocks) does not apply; ensembles with a pitch are solved
-by full Newton (``torchfra.forward``).
+by full Newton (``torchfra.calibration.forward``).
 
 The pitch derivative is exact (sensitivities by torch.func, :mod:`torchfra.fem.sensitivity`): each
 node's natural coordinates are corrected by one Newton step in torch,

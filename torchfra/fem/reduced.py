@@ -24,7 +24,7 @@ equilibrium states of a few members solved in full (*snapshots*, all load steps)
    nodal displacement is the distance to the full solution, to first order (Newton converges
    quadratically from there; tested: estimate and error agree to 5 %). The same at the other output
    whose full residual is largest relative to its forces. The larger of the two is the member's
-   ``error_estimate`` (mm). :func:`solve_ensemble` and ``torchfra.forward`` solve a member in full
+   ``error_estimate`` (mm). :func:`solve_ensemble` and ``torchfra.calibration.forward`` solve a member in full
    again when its estimate exceeds their tolerance, or when its reduced Newton fails.
 
 Why the polish is needed on the actuator (``scripts/study_reduced_conditioning.py``, results in

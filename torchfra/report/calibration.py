@@ -27,7 +27,7 @@ def filter_summary(out: dict) -> dict:
     """Per filter: one entry per parameter (mean, std, p10, p90; natural units), ``correlation``
     between parameters when there are several, the FE cost and the log evidence."""
     from torchfra.assimilation import innovation_flags
-    from torchfra.calibration import ensemble_stats
+    from torchfra.calibration.exact import ensemble_stats
 
     rows = {}
     pset = _pset(out)
@@ -89,7 +89,7 @@ def comparisons(out: dict, rows: dict) -> dict:
 
 def prior_summary(out: dict) -> dict:
     """Per parameter: the prior as given (kind, its two numbers) and the members' sample statistics."""
-    from torchfra.calibration import ensemble_stats
+    from torchfra.calibration.exact import ensemble_stats
 
     pset = _pset(out)
     sample = ensemble_stats(pset, out["Q0"])  # the members the hierarchical filters start from

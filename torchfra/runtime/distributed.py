@@ -3,7 +3,7 @@
 ``torchrun --standalone --nproc-per-node K scripts/forward_uq.py ...`` (one machine) or
 ``torchrun --nnodes N --nproc-per-node K --rdzv-endpoint HOST:PORT ...`` (several) starts K (x N)
 copies of a script with ``RANK``, ``WORLD_SIZE``, ``MASTER_ADDR`` and ``MASTER_PORT`` set.
-:func:`ranks` joins them into a gloo process group (CPU); ``torchfra.forward.run_forward`` then
+:func:`ranks` joins them into a gloo process group (CPU); ``torchfra.calibration.forward.run_forward`` then
 hands each rank its share of the members (round robin over the members still to solve, as rank
 0's run folder lists them, so every rank agrees) and :func:`share_files` copies each solved
 member's checkpoint from the rank that solved it to every other rank. Every rank ends with the

@@ -7,25 +7,35 @@ finished chunk is saved under ``runs/<name>/members/`` so a killed run resumes w
 Prior (paper §4): C10 ~ lognormal with mean 1.1 kappa_t and std 0.2 kappa_t of C10 itself,
 kappa_t = 0.005615 MPa. The body is made nearly incompressible with a fixed bulk ratio
 K/mu = ``bulk_ratio`` (D1 = 1 / (bulk_ratio C10)), so every member is equally incompressible.
+
+
+The run folder (checkpoints, locks): :mod:`torchfra.calibration.runfolder`.
 """
 from __future__ import annotations
 
-import json
 import os
-import socket
-import sys
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from torchfra import fem
-from torchfra.actuator.candidates import BULK_RATIO, E_FIBER, KAPPA_T
 from torchfra.actuator.deck import CAMERAS, deck_summary, observed_faces, read_deck
+from torchfra.calibration.config import CalibrationConfig, ForwardConfig
+from torchfra.calibration.priors import ParameterSet, lognormal_parameters, paper_prior
+from torchfra.calibration.runfolder import (
+    _check_resume,
+    _claim,
+    _finished,
+    _read_partial,
+    _save_solution,
+    _why_unreadable,
+    _write_partial,
+    load_chunk,
+)
 from torchfra.observation.operator import ObservationOperator, frame_times, interpolate_in_time
-from torchfra.priors import ParameterSet, lognormal_parameters, paper_prior
 
 
 def sample_lognormal(n: int, mean: float, std: float, generator: torch.Generator) -> torch.Tensor:
@@ -33,54 +43,6 @@ def sample_lognormal(n: int, mean: float, std: float, generator: torch.Generator
     return torch.exp(mu + sigma * torch.randn(n, generator=generator, dtype=torch.float64))
 
 
-@dataclass
-class ForwardConfig:
-    """Settings of a forward ensemble (units mm, MPa)."""
-
-    members: int = 100
-    resolution: int = 2
-    integration: str = "full"
-    seed: int = 0
-    c10_mean: float = 1.1 * KAPPA_T
-    c10_std: float = 0.2 * KAPPA_T
-    bulk_ratio: float = BULK_RATIO
-    E_fiber: float = E_FIBER
-    pressure: float = 0.022
-    load_steps: int = 20
-    frames: int = 100
-    chunk: int = 1  # members per batched solve and checkpoint (batching gains nothing: 0.92x measured)
-    threads: int = 1
-    # min_increment: a member that cannot advance 0.1 % of the load is at its limit point and stops
-    # there, flagged (the load steps are 5 % apart; halving further to 1e-5 only located the limit
-    # more finely, at the cost of 1.75x the member's Newton iterations: 196 against 112 for member 48
-    # of the paper's prior at resolution 1, which stops at 95 % either way)
-    newton: dict = field(default_factory=lambda: {"stagnation_tol": 1e-6, "min_increment": 1e-3})
-    method: str = "reduced"  # "reduced": a few members in full, the rest on their basis (fem.reduced); "full"
-    snapshots: int = 0  # members solved in full for the basis (0: 1 + 2 x varying parameters, at least 3)
-    reduced_tol: float = 5e-4  # mm: a reduced member whose check estimates more is solved in full
-    # reduced members per batched solve: 8 took 3.6 s per member against 4.0-4.3 s with 4 (the
-    # 3-parameter actuator prior at resolution 1, 16 members, 1 thread; 16: 3.5 s); a stopped run
-    # loses at most one batch
-    reduced_batch: int = 8
-    newton_budget: int = 500  # Newton iterations one member may spend (a full-Newton member took 80-230
-    # at resolution 1, the hopeless one included); a member that spends them stops, flagged
-    newton_seconds: float = 0.0  # wall seconds a full-Newton solve may take per member (0: no limit; a
-    # member at resolution 1 takes 7-20 s alone); one still solving then stops, flagged. Machine-dependent:
-    # a budget in iterations (newton_budget) gives the same answer everywhere
-    # any parameter set (torchfra.priors): prior specs "NAME=KIND:A,B" and fixed "NAME=VALUE"; empty:
-    # the paper's prior, C10 lognormal (c10_mean, c10_std) with E_fiber fixed
-    parameters: list = field(default_factory=list)
-    fixed: list = field(default_factory=list)
-    # the user's own model: an Abaqus/CalculiX deck (torchfra.io.read_inp) instead of the paper's
-    # actuator; its parameters keep the deck's values unless given a prior or a fixed value, ``P`` is
-    # the deck's pressure (``pressure`` then is that value), ``inp_digest`` what the deck held when
-    # the run started (a changed deck, includes too, is another run)
-    inp: str = ""
-    inp_digest: str = ""
-    # which side the camera looks from: "+x" (the actuator's front face) or "-x"; the recording
-    # contract observes uy and uz, so a deck is oriented with its camera on the x axis
-    camera: str = "+x"
-    face: str = ""  # a deck's *SURFACE to observe instead of every face the camera sees
 
 
 def with_deck(config):
@@ -158,165 +120,6 @@ def member_parameters(config: ForwardConfig, base: dict | None = None) -> dict[s
                                                   config.E_fiber, base=base)
 
 
-# settings that change how members are solved, not what they are: a run resumes across them
-HOW_NOT_WHAT = ("threads", "reduced_batch")
-
-
-def _check_resume(run_dir: Path, config: ForwardConfig) -> None:
-    path = run_dir / "config.json"
-    saved = asdict(config)
-    if path.exists():
-        old = json.loads(path.read_text())
-        defaults = json.loads(json.dumps(asdict(type(config)())))
-        old = {**{k: v for k, v in defaults.items() if k not in old}, **old}  # fields added since: their defaults
-        new = json.loads(json.dumps(saved))
-        for k in HOW_NOT_WHAT:
-            old[k] = new[k]
-        if old != new:
-            diff = sorted(k for k in saved if old.get(k) != new[k])
-            raise ValueError(
-                f"{run_dir} holds a forward run with other settings ({', '.join(diff)}); "
-                "choose another --name, or delete that folder to start over"
-            )
-    else:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f"config.{os.getpid()}.tmp")  # several workers may start at once
-        tmp.write_text(json.dumps(saved, indent=1))
-        tmp.replace(path)
-
-
-LOCK_EXPIRY_S = 3600.0  # a lock of another host older than this is taken as abandoned
-
-
-def _process_start(pid: int) -> str | None:
-    """Start time of a live process on this host (clock ticks since boot), None if there is none:
-    tells a recycled PID from the process that wrote a lock."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-        return stat.rsplit(")", 1)[1].split()[19]
-    except (OSError, IndexError):
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            return None
-        except PermissionError:
-            pass
-        return "unknown"  # alive, start time not readable (no /proc)
-
-
-def _lock_owner() -> dict:
-    return {"host": socket.gethostname(), "pid": os.getpid(), "start": _process_start(os.getpid()),
-            "time": time.time()}
-
-
-def _stale(lock: Path) -> str | None:
-    """Why a lock is abandoned (its process is gone, its PID was reused, or another host's lock
-    expired, or this very process left it when interrupted), or None while its owner may still
-    be working."""
-    try:
-        owner = json.loads(lock.read_text())
-        host, pid, start = owner["host"], int(owner["pid"]), owner["start"]
-    except (OSError, ValueError, KeyError, TypeError):
-        age = time.time() - lock.stat().st_mtime if lock.exists() else 0.0
-        return "it is unreadable" if age > 60.0 else None  # give a writer a moment to finish writing it
-    if host != socket.gethostname():
-        age = time.time() - float(owner.get("time", 0.0))
-        return f"host {host} last touched it {age / 60:.0f} min ago" if age > LOCK_EXPIRY_S else None
-    now = _process_start(pid)
-    if now is None:
-        return f"process {pid} has ended"
-    if start is not None and now not in ("unknown", start):
-        return f"process id {pid} now belongs to another process"
-    if pid == os.getpid():  # one run_forward at a time per process: an earlier call here was interrupted
-        return "an interrupted earlier run in this process left it"
-    return None
-
-
-def _claim(lock: Path, quiet: bool = False) -> bool:
-    """Take the lock file of a member chunk, so several worker processes can share one run folder
-    (``python scripts/forward_uq.py`` started twice on a 2-core machine). The lock names host, PID,
-    process start time and time; an abandoned lock (dead process, recycled PID, another host's lock
-    past ``LOCK_EXPIRY_S``) is taken over with a message, so a run never waits forever."""
-    try:
-        fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-    except FileExistsError:
-        why = _stale(lock)
-        if why is None:
-            return False
-        if not quiet:
-            print(f"taking over {lock.name}: {why}", file=sys.stderr, flush=True)
-        lock.unlink(missing_ok=True)
-        return _claim(lock, quiet)
-    with os.fdopen(fd, "w") as f:
-        f.write(json.dumps(_lock_owner()))
-    return True
-
-
-CHUNK_ARRAYS = ("Y", "u_last", "status", "load_reached", "iterations", "increments", "cutbacks", "last_residual",
-                "history_values", "history_lengths", "timings")
-OPTIONAL_ARRAYS = ("method", "error_estimate", "states", "full_tangents")  # reduced-method records
-
-
-def save_chunk(path: Path, history: list[list[float]], timings: dict, **arrays) -> None:
-    """Write a solved member chunk in a format that carries arrays only (loaded without unpickling):
-    the per-member residual histories flattened with their lengths, timings as a JSON string.
-    Written aside and renamed, so a killed run never leaves half a chunk."""
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, **{k: np.asarray(v) if k != "status" else np.asarray(v, dtype=str) for k, v in arrays.items()},
-             history_values=np.asarray([x for h in history for x in h], dtype=np.float64),
-             history_lengths=np.asarray([len(h) for h in history], dtype=np.int64),
-             timings=np.asarray(json.dumps(timings)))
-    tmp.replace(path)
-
-
-def _why_unreadable(exc: Exception) -> str:
-    """Why an array file could not be read, without numpy's advice to load pickled data unsafely."""
-    text = str(exc)
-    return "it is not an array archive written by np.savez" if "pickle" in text else text
-
-
-def load_chunk(path: Path) -> dict:
-    """Read a chunk written by :func:`save_chunk`; never unpickles. A file that is not such a chunk
-    (an older format, a damaged or planted file) is refused by name."""
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            missing = [k for k in CHUNK_ARRAYS if k not in data.files]
-            if missing:
-                raise ValueError(f"arrays {missing} are missing")
-            out = {k: data[k] for k in CHUNK_ARRAYS}
-            for k in OPTIONAL_ARRAYS:
-                if k in data.files:
-                    out[k] = data[k]
-        timings = json.loads(str(out.pop("timings")))
-        if not isinstance(timings, dict):
-            raise ValueError("timings is not a JSON object")
-    except Exception as exc:  # zip, pickle, key and JSON errors alike: one clear message
-        raise ValueError(
-            f"{path} is not a forward-ensemble chunk this version can read ({_why_unreadable(exc)}); it may be from an "
-            "older version, damaged, or planted: delete it and rerun to solve those members again"
-        ) from None
-    lengths = out.pop("history_lengths")
-    values = out.pop("history_values")
-    if lengths.sum() != values.size or (lengths < 0).any():
-        raise ValueError(f"{path}: residual histories do not add up; delete it and rerun")
-    edges = np.concatenate([[0], np.cumsum(lengths)])
-    out["history"] = [values[edges[i]:edges[i + 1]].tolist() for i in range(lengths.size)]
-    out["timings"] = timings
-    return out
-
-
-def _finished(chunks_dir: Path, spans: list[tuple[int, int]]) -> int:
-    """Members whose chunk is on disk, whichever process solved it."""
-    return sum(stop - start for start, stop in spans if (chunks_dir / f"chunk_{start:05d}.npz").exists())
-
-
-def _save_solution(path: Path, Y, u_last, sol, wall: float, **extra) -> None:
-    save_chunk(path, Y=Y, u_last=u_last, status=sol.status, load_reached=sol.load_reached,
-               iterations=sol.iterations, increments=sol.increments, cutbacks=sol.cutbacks,
-               last_residual=sol.last_residual, history=sol.residual_history,
-               timings={**sol.timings, "wall": wall}, **extra)
-
-
 def _reduced_model(run_dir: Path, model, snap_records: list[dict], params, snap, load, quiet: bool,
                    rebuild: bool = False):
     """The hyper-reduced model of the run: read from ``reduced_model.npz`` if a worker built it,
@@ -358,30 +161,6 @@ def _reduction_digest(hyper) -> str:
         h.update(key.encode())
         h.update(np.ascontiguousarray(value).tobytes())
     return h.hexdigest()[:32]
-
-
-def _write_partial(path: Path, batch: list[int], digest: str, state: dict) -> None:
-    """A reduced batch's state after a load step (arrays only), so a kill loses one load step of it."""
-    tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
-    np.savez(tmp, members=np.asarray(batch, dtype=np.int64), digest=np.array(digest), **state)
-    tmp.replace(path)
-
-
-def _read_partial(path: Path, batch: list[int], digest: str, load) -> dict | None:
-    """The saved state of this very batch on this very reduction, or None (absent, another batch or
-    basis, unreadable: solved from its start again)."""
-    if not path.exists():
-        return None
-    try:
-        with np.load(path, allow_pickle=False) as f:
-            state = {k: f[k] for k in f.files}
-        same = (state["members"].tolist() == list(batch) and str(state["digest"]) == digest
-                and np.array_equal(state["load_factors"], load))
-    except (OSError, ValueError, EOFError, KeyError) as err:  # a pickle payload is refused here, never run
-        print(f"forward ensemble: {path} is not a readable batch checkpoint ({type(err).__name__}: {err}); "
-              "its members are solved from the start", file=sys.stderr)
-        return None
-    return state if same else None
 
 
 def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = True) -> dict:
@@ -617,3 +396,35 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
         "history": [h for r in records for h in r["history"]], "timings": timings,
         "wall_s": time.perf_counter() - t0, **cat,
     }
+
+
+# -- the forward run a calibration shares ------------------------------------------------------------
+
+def forward_dir(config: CalibrationConfig, runs_dir) -> Path:
+    """Where the forward ensemble of ``config`` is cached: ``<runs>/forward_cache/<settings>/``, shared by
+    every calibration run with the same prior, mesh and load (a new recording needs no new FE work)."""
+    f = forward_config(config)
+    method = "" if f.method == "full" else f"_{f.method}"
+    prior = f"_prior{parameter_set(f).key()}" if f.parameters else ""  # the paper's prior keeps its old name
+    model = (f"deck{f.inp_digest[:10]}{f.camera}{f.face}" if f.inp else
+             f"mesh{f.resolution}")  # a deck's cache is keyed by what it holds, not by its path
+    return Path(runs_dir) / "forward_cache" / (f"{model}_N{f.members}_seed{f.seed}_P{f.pressure:g}"
+                                               f"_steps{f.load_steps}{method}{prior}")
+
+
+def forward_config(config: CalibrationConfig) -> ForwardConfig:
+    """The forward ensemble's settings (a deck read: its digest and pressure, see ``with_deck``)."""
+    return with_deck(ForwardConfig(members=config.members, resolution=config.resolution, seed=config.seed,
+                                   pressure=config.pressure, load_steps=config.load_steps,
+                                   parameters=list(config.parameters), fixed=list(config.fixed),
+                                   inp=config.inp, camera=config.camera, face=config.face))
+
+
+def truth_values(config: CalibrationConfig) -> dict[str, float]:
+    """The synthetic recording's value of every uncertain parameter (C10 from ``truth_c10``, the
+    others from ``truth`` or their null value)."""
+    pset = parameter_set(forward_config(config))
+    given = {"C10": config.truth_c10, **config.truth} if "C10" in pset.names else dict(config.truth)
+    Q = pset.values(given, where="truth of the synthetic recording")  # checks every value against its prior
+    return {n: float(given[n]) if n in given else float(p.natural(Q[:, j])[0]) for j, (n, p) in
+            enumerate(zip(pset.names, pset.priors))}
