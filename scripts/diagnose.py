@@ -25,7 +25,8 @@ from torchfra.actuator.deck import DeckModel  # noqa: E402
 from torchfra.calibration.config import ForwardConfig  # noqa: E402
 from torchfra.calibration.forward import observed_surface  # noqa: E402
 from torchfra.cli import add_deck_flags, check_deck_flags  # noqa: E402
-from torchfra.discovery import ALL_CANDIDATES, DiagnosisError, diagnose  # noqa: E402
+from torchfra.diagnosis.noise import DiagnosisError  # noqa: E402
+from torchfra.diagnosis.pipeline import ALL_CANDIDATES, diagnose  # noqa: E402
 from torchfra.io.dic.importer import add_arguments, recording_path  # noqa: E402
 from torchfra.io.recordings import read_recording  # noqa: E402
 

@@ -417,7 +417,7 @@ def main(argv=None) -> dict:
     correlations = [float(x) for x in a.correlation.split(",")]
     if any(c < 0 for c in correlations):
         raise ValueError(f"correlation lengths must be >= 0 mm, got {a.correlation}")
-    from torchfra.discovery import diagnose
+    from torchfra.diagnosis.pipeline import diagnose
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

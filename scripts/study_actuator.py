@@ -18,8 +18,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from torchfra import fem  # noqa: E402
-from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model  # noqa: E402
 from torchfra.actuator.candidates import KAPPA_T  # noqa: E402
+from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model  # noqa: E402
 from torchfra.fem.constraints import rotation_matrix  # noqa: E402
 
 

@@ -8,7 +8,7 @@ noise, diagnosed by the resolution-1 model told the noise ``--noise`` (the right
 discretization error (and the load steps' reading of the frames); its score statistics along the
 other candidates' directions are the non-centralities those tests carry on every noisy recording of
 this kind. Reported per candidate: the score left by the refit as it is, and after the mesh error,
-estimated by one refinement (``discovery.discretization_error``), is taken out; and the probability
+estimated by one refinement (``diagnosis.refit.discretization_error``), is taken out; and the probability
 that at least one of them fails the surrogate test at the diagnosis' level on a noisy recording
 (non-central chi^2; one-sided for a one-sided candidate), against the noise alone.
 Writes ``--out`` (results/study_mesh_error.json) and runs/<name>/ (the diagnosis, its cached solves:
@@ -28,7 +28,7 @@ import torch
 from scipy import stats
 
 from torchfra import scenarios
-from torchfra.discovery import diagnose
+from torchfra.diagnosis.pipeline import diagnose
 
 
 def failure(scores: dict, rows: dict, level: float) -> float:

@@ -12,7 +12,7 @@ diagnosis' own levels: alpha/2 for the global test, alpha/2 shared by the candid
 largest single test's probability and the sum over the tests lies the rate at which a null is
 flagged as a mismatch (the tests share the residual, so neither is exact).
 
-The same is measured with the error estimated by one refinement (``discovery.discretization_error``
+The same is measured with the error estimated by one refinement (``diagnosis.refit.discretization_error``
 at the base fit) taken out of the recording before the fit: how far such a correction would move the
 floor. The diagnosis does not do this for the base fit today (README "How little noise").
 
@@ -33,7 +33,8 @@ import torch
 from scipy import stats
 
 from torchfra import scenarios
-from torchfra.discovery import diagnose, discretization_error
+from torchfra.diagnosis.pipeline import diagnose
+from torchfra.diagnosis.refit import discretization_error
 
 NOISE_SCAN = (1.0, 0.5, 0.25, 0.1, 0.05, 0.025)  # mm
 

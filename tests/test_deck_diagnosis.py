@@ -20,7 +20,8 @@ from helpers import load_script
 
 from torchfra import fem
 from torchfra.actuator.deck import DeckModel
-from torchfra.discovery import DiagnosisError, diagnose
+from torchfra.diagnosis.noise import DiagnosisError
+from torchfra.diagnosis.pipeline import diagnose
 from torchfra.fem.elements import HEX20_FACES  # noqa: F401  (face numbering of the deck's surfaces)
 from torchfra.fem.structured import box_mesh
 from torchfra.io.abaqus.read import read_inp

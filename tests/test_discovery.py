@@ -17,21 +17,11 @@ from helpers import assert_same_json
 from torchfra import fem
 from torchfra.actuator.candidates import COORDINATES
 from torchfra.calibration.synthetic import synthetic_recording
-from torchfra.discovery import (
-    ALL_CANDIDATES,
-    NOISE_FLOOR_MM,
-    DiagnosisError,
-    NoiseModel,
-    Whitener,
-    consistency,
-    diagnose,
-    discretization_error,
-    estimate_noise,
-    locate,
-    model_floor,
-    quiet_triples,
-    rank,
-)
+from torchfra.diagnosis.locate import consistency, locate
+from torchfra.diagnosis.noise import DiagnosisError, NoiseModel, Whitener, estimate_noise, quiet_triples
+from torchfra.diagnosis.pipeline import ALL_CANDIDATES, diagnose
+from torchfra.diagnosis.rank import rank
+from torchfra.diagnosis.refit import NOISE_FLOOR_MM, discretization_error, model_floor
 from torchfra.observation.recording import Recording
 
 DATA = Path(__file__).parent / "data"
@@ -165,7 +155,7 @@ def test_secant_finds_an_effect_the_derivative_at_the_null_misses():
     (C10, derivative, secant) against C10 alone, on 2 dof; the derivative alone (the test before
     FAR_SECANTS) explains a fraction of the effect and is not significant. The surrogate check uses
     the same directions."""
-    from torchfra.discovery import _remaining_scores
+    from torchfra.diagnosis.rank import _remaining_scores
 
     rng = np.random.default_rng(11)
     shape, b, secant, names, J = _far_null_problem(rng)
@@ -335,7 +325,7 @@ def test_diagnosis_names_a_pressure_offset_and_resumes_without_solving(offset_re
         raise AssertionError("a resumed diagnosis solved again")
 
     monkeypatch.setattr(fem, "solve", no_solve)
-    monkeypatch.setattr("torchfra.physics.fem.solve", no_solve)
+    monkeypatch.setattr("torchfra.diagnosis.model.fem.solve", no_solve)
     again = diagnose(offset_recording, noise=0.3, correlation=0.0, candidates=["pressure_sensor", "gravity"], mesh_error=False,
                      run_dir=tmp_path / "d", progress=False, load_steps=6, max_refits=1)
     assert again["decision"] == out["decision"]
@@ -357,7 +347,7 @@ class _ScalingPhysics:
         return COORDINATES[name]
 
     def observe(self, z):
-        from torchfra.physics import Evaluation
+        from torchfra.diagnosis.model import Evaluation
 
         c10, off = math.exp(z["C10"]), z.get("pressure_offset", 0.0)
         lam = (self.rec.pressure + off) / c10
@@ -370,11 +360,11 @@ class _ScalingPhysics:
 @pytest.mark.parametrize("free", [["C10"], ["C10", "pressure_offset"]])
 def test_gauss_newton_laplace_matches_the_exact_posterior(free):
     """The refits' calibration (Gauss-Newton MAP + Laplace covariance and evidence, with the truncated
-    priors of torchfra.physics.COORDINATES) against the exact posterior by quadrature on a fine grid of
+    priors of torchfra.diagnosis.model.COORDINATES) against the exact posterior by quadrature on a fine grid of
     the coordinates: means within 0.05 exact std, std ratios within 5 %, log evidence within 0.05.
     Reference: direct numerical integration of likelihood x prior (1-D and 2-D tensor grids)."""
     from torchfra.actuator.candidates import COORDINATES
-    from torchfra.discovery import gauss_newton
+    from torchfra.diagnosis.fit import gauss_newton
 
     rng = np.random.default_rng(11)
     rec = grid_recording(K=12, n=5)
@@ -433,7 +423,7 @@ def test_unit_mistakes_are_refused_before_any_fit(offset_recording):
 def test_remaining_scores_expose_a_surrogate():
     """Linear-Gaussian: the mismatch is made of two candidates' sensitivities. Fitting one leaves the
     other's score test significant on the residual (a surrogate); fitting both leaves it at chi^2_1."""
-    from torchfra.discovery import _remaining_scores
+    from torchfra.diagnosis.rank import _remaining_scores
 
     rng = np.random.default_rng(7)
     K, P = 20, 30
@@ -466,7 +456,7 @@ def test_remaining_scores_at_the_extended_fit_are_exact_and_one_sided():
     drop of adding the candidate to the extended fit (exact for linear models); projected off the base
     point's columns instead it does not. A one-sided candidate (a density) is significant only when the
     residual pulls it into its range."""
-    from torchfra.discovery import _remaining_scores
+    from torchfra.diagnosis.rank import _remaining_scores
 
     rng = np.random.default_rng(8)
     K, P = 20, 30
@@ -497,8 +487,8 @@ def test_a_compliant_fibers_effect_lies_in_its_derivative_and_secant():
     8.9); derivative and secant to E_fiber = 209 MPa (FAR_SECANTS) carry more than 0.98 of a 60 MPa and
     a 20 MPa fiber's effect (measured 0.998 and 0.991). Reference: the FE model's own response at the
     true E_fiber. The score (noise 1 mm) is that captured part of the effect's squared norm."""
-    from torchfra.discovery import score_candidates
-    from torchfra.physics import ActuatorPhysics
+    from torchfra.diagnosis.model import ActuatorPhysics
+    from torchfra.diagnosis.rank import score_candidates
 
     times = np.arange(1, 7) / 6
     rec, _ = synthetic_recording(0.006, resolution=1, points="4.0", noise=0.0, times=times, pressure=0.02 * times)
@@ -535,8 +525,8 @@ def test_refit_finds_a_term_that_switches_on_far_from_its_null():
     the objective is flat in log D1 and a local fit started there stays (measured: log D1 = -0.1 +- 1.8
     against a true 4.0). The scan along the score direction must bracket the minimum and the refit
     from its start recover the truth within 3 posterior std (reference: the generating value)."""
-    from torchfra.discovery import gauss_newton, scan_start
-    from torchfra.physics import ActuatorPhysics
+    from torchfra.diagnosis.fit import gauss_newton, scan_start
+    from torchfra.diagnosis.model import ActuatorPhysics
 
     times = np.arange(1, 7) / 6
     rec, _ = synthetic_recording(0.006, resolution=1, points="4.0", noise=0.0, times=times, pressure=0.02 * times)
@@ -560,7 +550,7 @@ def test_decision_names_every_extension_the_data_cannot_tell_apart():
     """Of the refits that pass, the largest log evidence decides; another within the decisive margin
     (5) is named beside it, never dropped; one more than 5 below is not; nothing passed: unexplained.
     (A bulk and a fiber compliance can both explain a recording once refitted.)"""
-    from torchfra.discovery import decide
+    from torchfra.diagnosis.decide import decide
 
     ranking = [{"name": n, "group": [n]} for n in ("compressibility", "fiber_stiffness", "gravity")]
     ranking.append({"name": "pressure_sensor", "group": ["pressure_sensor", "C10"]})
@@ -590,7 +580,7 @@ def test_a_pair_is_accepted_only_when_it_beats_each_member_alone():
     compressible bulk (k = 3, noise 0.25 mm) refitted alone left a faint gravity score, and the pair
     with a compliant fiber put E_fiber at 388 +- 191 MPa, 8.9 posterior std below its null in log
     E_fiber (a stiff fiber's effect saturates), at log evidence -125.7 against the bulk alone's -124.4."""
-    from torchfra.discovery import beats_its_members
+    from torchfra.diagnosis.refit import beats_its_members
 
     def tried(*rows):
         return [{"candidates": list(c), "fit": {"log_evidence": ev}} for c, ev in rows]
@@ -607,8 +597,8 @@ def test_a_pair_is_accepted_only_when_it_beats_each_member_alone():
 def test_a_secant_point_that_does_not_solve_leaves_the_derivatives_test(monkeypatch):
     """A failed Newton solve at the fiber's secant point (E_fiber = 209 MPa) is not an error: the
     candidate keeps the derivative's 1-dof test, no secant column is made, and the solve is counted."""
-    from torchfra.discovery import score_candidates
-    from torchfra.physics import ActuatorPhysics, Evaluation
+    from torchfra.diagnosis.model import ActuatorPhysics, Evaluation
+    from torchfra.diagnosis.rank import score_candidates
 
     times = np.arange(1, 5) / 4
     rec, _ = synthetic_recording(0.006, resolution=1, points="4.0", noise=0.3, times=times, pressure=0.02 * times)
@@ -638,7 +628,7 @@ def test_the_mesh_error_estimate_takes_a_finer_recordings_discretization_out():
     refinement's estimate takes it out up to the load steps' Hermite reading of the frames (measured
     2e-5 of it)."""
     from torchfra import scenarios
-    from torchfra.physics import ActuatorPhysics
+    from torchfra.diagnosis.model import ActuatorPhysics
 
     rec, clean, _ = scenarios.make_scenario("none", 0, noise=0.01, resolution=2, frames=4, spacing=4.0,
                                             cache_dir=None)
@@ -716,7 +706,7 @@ def test_below_the_floor_the_meshs_error_is_taken_out_before_the_tests(tmp_path,
     real resolution-2 nulls, 0.5-1.2 % at every noise, is measured by scripts/study_noise_floor.py)."""
     from scipy import stats
 
-    import torchfra.discovery as discovery
+    import torchfra.diagnosis.pipeline as discovery
 
     times = np.arange(1, 9) / 8
     rec, clean = synthetic_recording(0.006, resolution=1, points="4.0", noise=0.0, times=times)

@@ -210,9 +210,9 @@ def test_the_diagnosis_sees_the_pitch_through_a_secant():
 
     from torchfra.actuator.candidates import SECANT_STEPS
     from torchfra.actuator.geometry import actuator_mesh
+    from torchfra.diagnosis.model import ActuatorPhysics
     from torchfra.observation.operator import regular_grid
     from torchfra.observation.recording import Recording
-    from torchfra.physics import ActuatorPhysics
 
     mesh = actuator_mesh(ActuatorGeometry(resolution=1))
     X = regular_grid(mesh, visible_faces(mesh, (1.0, 0.0, 0.0)), 4.0)

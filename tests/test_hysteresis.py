@@ -1,4 +1,4 @@
-"""The model-free hysteresis test of the diagnosis (``discovery.hysteresis``).
+"""The model-free hysteresis test of the diagnosis (``diagnosis.locate.hysteresis``).
 
 Reference: under path independence (every hyperelastic, quasi-static model) the loading/unloading
 differences are noise only, so each statistic rejects at its nominal level; measured here over
@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from torchfra.discovery import NoiseModel, Whitener, hysteresis
+from torchfra.diagnosis.locate import hysteresis
+from torchfra.diagnosis.noise import NoiseModel, Whitener
 from torchfra.observation.recording import Recording
 
 K, PMAX = 20, 0.022

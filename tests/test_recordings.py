@@ -213,7 +213,7 @@ def test_a_ragged_layout_is_stored_per_frame_in_memory_of_its_rows(tmp_path):
 def test_ragged_frames_keep_their_own_points_and_refuse_the_diagnosis():
     """Frames that each observe their own few points: frame k's slots hold its rows in the order of
     their point ids, empty slots NaN and -1; what follows points through frames refuses by name."""
-    from torchfra.discovery import diagnose
+    from torchfra.diagnosis.pipeline import diagnose
     from torchfra.observation.recording import from_table
 
     # frame 0 sees points 3, 1; frame 1 sees 2; frame 2 sees 5, 4, 0 (6 points, at most 3 per frame)

@@ -14,8 +14,8 @@ import torch
 
 from torchfra.actuator.candidates import CANDIDATE_PARAMETERS, HISTORY_DEPENDENT_CANDIDATES, LOAD_MAP_ONLY
 from torchfra.actuator.history import creep_load, normalized_time
+from torchfra.diagnosis.model import ActuatorPhysics
 from torchfra.observation.recording import Recording
-from torchfra.physics import ActuatorPhysics
 
 D = torch.float64
 
@@ -148,9 +148,10 @@ class _ScalingActuator(ActuatorPhysics):
 
 @pytest.fixture
 def stand_in(monkeypatch):
-    monkeypatch.setattr("torchfra.discovery.ActuatorPhysics", _ScalingActuator)
+    for step in ("pipeline", "rank", "refit", "decide"):  # every step of the diagnosis that builds a model
+        monkeypatch.setattr(f"torchfra.diagnosis.{step}.ActuatorPhysics", _ScalingActuator)
     # the stand-in's creep is exact on its own terms: the FE history refit is the same model again
-    monkeypatch.setattr("torchfra.discovery.HistoryPhysics",
+    monkeypatch.setattr("torchfra.diagnosis.refit.HistoryPhysics",
                         lambda rec, resolution, cache, deck: _ScalingActuator(rec, ("viscoelasticity",)))
 
     def recording(felt, recorded, seed, frames=21, sigma=0.3):
@@ -176,7 +177,7 @@ def triangle(t):
 def test_stand_in_diagnosis_names_a_creeping_body(stand_in, tmp_path):
     """g1 = 0.3, tau1 = 0.1: viscoelasticity named, beating the lagging-pressure rival decisively, no
     loop left, g1 and tau1 within 3 std of the generating values."""
-    from torchfra.discovery import diagnose
+    from torchfra.diagnosis.pipeline import diagnose
 
     rec = stand_in(lambda t: triangle_creep(t, 0.3, 0.1), triangle, seed=1)
     out = diagnose(rec, noise=0.3, correlation=0.0, candidates=["viscoelasticity"], progress=False, load_steps=10,
@@ -200,7 +201,7 @@ def test_stand_in_lagging_cavity_pressure_is_not_named_a_creeping_body(stand_in)
     """The cavity's pressure lags its sensor by 0.02 of the recording (a pneumatic line; frames every
     0.05): the loop has a creeping body's sense, and creep fits it as well as the lag does (a delay
     shorter than the frame spacing is short-time creep), so nothing is named; both causes are."""
-    from torchfra.discovery import diagnose
+    from torchfra.diagnosis.pipeline import diagnose
 
     rec = stand_in(lambda t: triangle(np.maximum(t - 0.02, 0.0)), triangle, seed=2)
     out = diagnose(rec, noise=0.3, correlation=0.0, candidates=["viscoelasticity"], progress=False, load_steps=10)
@@ -215,7 +216,7 @@ def test_stand_in_body_leading_its_recorded_pressure_is_not_a_creeping_body(stan
     """The sensor lags the cavity by 0.04 (the body leads the recorded pressure): a loop no passive
     body makes. The one-sided score test of g1 >= 0 stays quiet, nothing is refitted, the decision
     is "unexplained" with a clock among the causes."""
-    from torchfra.discovery import diagnose
+    from torchfra.diagnosis.pipeline import diagnose
 
     rec = stand_in(triangle, lambda t: triangle(np.maximum(t - 0.04, 0.0)), seed=3)
     out = diagnose(rec, noise=0.3, correlation=0.0, candidates=["viscoelasticity"], progress=False, load_steps=10)
@@ -228,7 +229,7 @@ def test_stand_in_body_leading_its_recorded_pressure_is_not_a_creeping_body(stan
 
 def test_stand_in_null_cycle_is_not_flagged(stand_in):
     """No effect on a load-unload cycle: no loop, no candidate, decision "none"."""
-    from torchfra.discovery import diagnose
+    from torchfra.diagnosis.pipeline import diagnose
 
     rec = stand_in(triangle, triangle, seed=4)
     out = diagnose(rec, noise=0.3, correlation=0.0, candidates=["viscoelasticity"], progress=False, load_steps=10)
@@ -243,8 +244,8 @@ def test_actuator_physics_creep_shares_the_base_solve_and_its_sensitivities_are_
     base model bitwise; changing g1 or tau1 solves nothing (they act on the frames' load factors only);
     dY/dg1 and dY/dlog tau1 match central differences of the observations (reference)."""
     from torchfra.actuator.geometry import ActuatorGeometry, actuator_mesh
+    from torchfra.diagnosis.model import ActuatorPhysics as Real
     from torchfra.observation.operator import regular_grid, visible_faces
-    from torchfra.physics import ActuatorPhysics as Real
 
     mesh = actuator_mesh(ActuatorGeometry(resolution=1))
     X = regular_grid(mesh, visible_faces(mesh, (1.0, 0.0, 0.0)), 4.0)
@@ -283,7 +284,8 @@ def test_stand_in_ramp_does_not_test_creep(stand_in):
     """On a load that only rises, creep is a warp of the load axis (confounded with the material's own
     nonlinearity): the candidate is reported not testable, never ranked or refitted, even when the
     recording does creep (g1 = 0.3)."""
-    from torchfra.discovery import diagnose, history_identifiable
+    from torchfra.diagnosis.locate import history_identifiable
+    from torchfra.diagnosis.pipeline import diagnose
 
     rec = stand_in(lambda t: t - 0.3 * (0.1 / 0.7) * (1 - np.exp(-t * 7)), lambda t: np.asarray(t), seed=5)
     out = diagnose(rec, noise=0.3, correlation=0.0, candidates=["viscoelasticity"], progress=False, load_steps=10)

@@ -279,8 +279,8 @@ def test_the_diagnosis_creeping_body_on_the_fe_history_model():
     import math
 
     from torchfra.actuator.geometry import ActuatorGeometry, actuator_mesh
+    from torchfra.diagnosis.model import ActuatorPhysics, HistoryPhysics
     from torchfra.observation.recording import Recording
-    from torchfra.physics import ActuatorPhysics, HistoryPhysics
     from torchfra.scenarios import dic_grid
 
     mesh = actuator_mesh(ActuatorGeometry(resolution=1))
@@ -305,7 +305,7 @@ def test_the_diagnosis_creeping_body_on_the_fe_history_model():
 def test_prehistory_of_a_recording():
     """A recording part-way up a ramp started from rest on that ramp extended back to zero load; one
     that starts unloaded, at a hold or coming down is taken relaxed at its first frame."""
-    from torchfra.physics import prehistory
+    from torchfra.diagnosis.model import prehistory
 
     t = np.array([0.0, 0.1, 0.2])
     assert prehistory(t, np.array([0.2, 0.4, 0.6])) == (-0.1, True)
