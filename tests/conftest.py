@@ -6,6 +6,11 @@ os.environ.setdefault("MKL_NUM_THREADS", "1")
 
 import torch  # noqa: E402
 
+from torchfra.runtime.allocator import keep_freed_memory  # noqa: E402
+
+# the test processes run FE solves as the commands do, with the commands' allocator setting
+keep_freed_memory()
+
 # Threads are set explicitly (DESIGN §5): torch.func code ran 10-20x slower with 2 threads on a
 # loaded 2-core machine. Override with TORCHFRA_THREADS.
 torch.set_num_threads(int(os.environ.get("TORCHFRA_THREADS", "1")))

@@ -1,6 +1,7 @@
 """Shared fixtures-by-function for the tests (small meshes and models)."""
 from __future__ import annotations
 
+import importlib
 import importlib.util
 from pathlib import Path
 
@@ -45,9 +46,19 @@ def block_with_cavity(n=3, size=3.0):
     return fem.Mesh(full.nodes, elements, full.node_sets, face_sets)
 
 
+# the user commands' modules (scripts/<name>.py is a thin wrapper of each)
+COMMANDS = {"calibrate": "calibrate", "diagnose": "diagnose", "forward_uq": "forward", "make_recording": "make_recording",
+            "import_dic": "import_dic", "scenarios": "scenarios", "fem_demo": "demo", "bench": "bench"}
+
+
 def load_script(name: str):
-    """Import ``scripts/<name>.py`` as a module (the scripts are not a package)."""
-    path = Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py"
+    """The module behind ``scripts/<name>.py``: a command's ``torchfra.cli`` module, or a study under
+    ``studies/`` (imported from its file: the studies are not a package)."""
+    if name in COMMANDS:
+        return importlib.import_module(f"torchfra.cli.{COMMANDS[name]}")
+    root = Path(__file__).resolve().parents[1]
+    path = next((p for p in (root / "studies" / f"{name.removeprefix('study_')}.py", root / "scripts" / f"{name}.py")
+                 if p.exists()), root / "scripts" / f"{name}.py")
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)

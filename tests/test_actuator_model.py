@@ -69,7 +69,7 @@ def test_bends_away_from_the_cavity(solved):
     R = rotation_matrix(theta).numpy()
     angle = np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))
     assert abs(theta[0]) > 10 * abs(theta[1:]).max()  # about x: bending in the y-z plane
-    assert 30.0 < angle < 60.0  # measured 43.6 deg at this mesh (scripts/study_actuator.py)
+    assert 30.0 < angle < 60.0  # measured 43.6 deg at this mesh (studies/actuator.py)
 
 
 def test_fibers_nearly_inextensible(solved):

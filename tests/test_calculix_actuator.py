@@ -1,6 +1,6 @@
 """The actuator model against CalculiX on a shortened actuator (20 mm long, 10 mm cavity, 10° pitch).
 
-The decks are those of ``scripts/study_calculix_actuator.py``: C3D20R bricks, fiber nodes tied to
+The decks are those of ``studies/calculix_actuator.py``: C3D20R bricks, fiber nodes tied to
 the host bricks by ``*EQUATION``, ``*RIGID BODY`` top, cavity pressure as ``*DLOAD``; each Line3
 fiber is two T3D2 trusses (the exported deck) or two SPRINGA axial springs of stiffness E A / L
 (ideal two-node trusses). torchfra solves the script's ``twin`` case: displacement-only bricks

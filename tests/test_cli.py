@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from torchfra import cli
+from torchfra.cli import run as cli
 from torchfra.observation.recording import RecordingError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -55,16 +55,22 @@ def test_scripts_end_a_wrong_input_with_one_paragraph(tmp_path, args, message):
     assert "\n\n" not in out.stderr.strip()
 
 
-UNWRAPPED: set[str] = set()
+def test_every_script_is_a_thin_wrapper_of_its_subcommand_and_ends_through_cli_run():
+    """scripts/<name>.py is its subcommand's main (the same flags) run through cli.run, nothing else;
+    every subcommand module's own main guard goes through cli.run too."""
+    from torchfra.cli.main import SUBCOMMANDS
 
-
-def test_every_script_ends_through_cli_run():
-    """The subprocess runs above stand for the rest: each script's main guard goes through cli.run."""
-    scripts = sorted(p for p in (ROOT / "scripts").glob("*.py") if p.name not in UNWRAPPED)
-    assert len(scripts) >= 7
+    scripts = sorted((ROOT / "scripts").glob("*.py"))
+    assert len(scripts) == len(SUBCOMMANDS)
+    modules = {m for m, _ in SUBCOMMANDS.values()}
     for path in scripts:
-        tail = path.read_text().rstrip().splitlines()[-3:]
-        assert [line.strip() for line in tail] == ["from torchfra.cli import run", "", "run(main)"], path.name
+        lines = [line.strip() for line in path.read_text().splitlines() if line.strip()]
+        imports = [line for line in lines if line.startswith("from torchfra.cli.") and line.endswith(" import main")]
+        assert len(imports) == 1 and imports[0].split()[1].removeprefix("torchfra.cli.") in modules, path.name
+        assert lines[-2:] == ['if __name__ == "__main__":', "run(main)"] and len(lines) <= 6, path.name
+    for module in modules:
+        tail = (ROOT / "torchfra" / "cli" / f"{module}.py").read_text().rstrip().splitlines()[-3:]
+        assert [line.strip() for line in tail] == ["from torchfra.cli.run import run", "", "run(main)"], module
 
 
 def test_debug_shows_the_traceback(tmp_path):

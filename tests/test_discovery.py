@@ -645,7 +645,7 @@ def test_the_mesh_error_estimate_takes_a_finer_recordings_discretization_out():
 
 
 def test_surrogate_failure_rate_of_a_mesh_error_matches_monte_carlo():
-    """scripts/study_mesh_error.py turns the scores a noise-free residual leaves into the rate at which
+    """studies/mesh_error.py turns the scores a noise-free residual leaves into the rate at which
     the surrogate test fails on noisy recordings (non-central chi^2, one-sided for a one-sided
     candidate). Reference: 200 000 draws of the scores with unit noise added along the directions."""
     from helpers import load_script
@@ -671,7 +671,7 @@ def test_surrogate_failure_rate_of_a_mesh_error_matches_monte_carlo():
 
 
 def test_a_noise_below_the_models_own_floor_is_said():
-    """The floor is what scripts/study_noise_floor.py measured (results/study_noise_floor.json, a
+    """The floor is what studies/noise_floor.py measured (studies/results/study_noise_floor.json, a
     noise-free resolution-2 null fitted at resolution 1, non-central chi^2 of every test): the smallest
     scanned noise at which the model's own discretization error flags a null at most 5 % of the time,
     more than 5 % at the next noise below. Under it a diagnosis says so and what to do; at or above it,
@@ -703,7 +703,7 @@ def test_below_the_floor_the_meshs_error_is_taken_out_before_the_tests(tmp_path,
     flagged. Here the "error" is a smooth field growing with the load that C10 cannot absorb, and the
     refinement is replaced by one returning it (the estimate itself is tested by
     test_the_mesh_error_estimate_takes_a_finer_recordings_discretization_out; the rate this gives on
-    real resolution-2 nulls, 0.5-1.2 % at every noise, is measured by scripts/study_noise_floor.py)."""
+    real resolution-2 nulls, 0.5-1.2 % at every noise, is measured by studies/noise_floor.py)."""
     from scipy import stats
 
     import torchfra.diagnosis.pipeline as discovery

@@ -6,7 +6,7 @@ solver's tolerance — for every member of one batched solve, each with its own 
 differences of the residual and of full solves for the derivatives (the issue's bounds: residual
 < 1e-6, solves < 1e-5); (3) at a zero morph the model is the base model (round-off).
 The actuator's cavity offset morphed vs re-meshed (discretization error) is measured by
-``scripts/study_cavity_offset.py`` (README).
+``studies/cavity_offset.py`` (README).
 """
 import numpy as np
 import pytest

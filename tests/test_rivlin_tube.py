@@ -62,7 +62,7 @@ def test_quarter_tube_converges_to_rivlin():
 
     Measured (this machine, float64): relative error of the mean inner-wall nodal radius
     1.404e-3, 1.141e-4, 7.881e-6 on (1,2,1), (2,4,1), (4,8,1); observed orders 3.62, 3.86
-    (3.98 and 4.19 for the next two refinements, scripts/study_rivlin.py): nodal superconvergence of the
+    (3.98 and 4.19 for the next two refinements, studies/rivlin.py): nodal superconvergence of the
     quadratic brick. Bounds below leave ~50 % margin on the error and 0.3 on the order.
     """
     results = refinement_study(A, B, C10, P, [(1, 2, 1), (2, 4, 1), (4, 8, 1)])

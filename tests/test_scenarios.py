@@ -10,6 +10,7 @@ import torch
 from torchfra import fem, scenarios
 from torchfra.actuator.geometry import ActuatorGeometry, actuator_mesh, build_actuator_model
 from torchfra.observation.operator import ObservationOperator, visible_faces
+from torchfra.scenarios import calculix, generate
 
 FAST = dict(resolution=1, frames=3, truth_c10=0.0062)
 
@@ -123,9 +124,7 @@ def test_suite_driver_selects_cases_and_tabulates_by_the_snr_after_the_base_fit(
     """scripts/scenarios.py: --sizes picks effect sizes (nulls keep their truths and traces); the table
     bands rows by the SNR left after the base model's C10 refit and averages wall time only over
     diagnoses that solved everything themselves."""
-    from helpers import load_script
-
-    suite = load_script("scenarios")
+    from torchfra.scenarios import suite
     todo = suite.cases(["none", "gravity"], 2, [0.0, 4.0], False, {3})
     names = [c["case"] for c in todo]
     assert len(todo) == (4 + 1) * 2 * 2 and len(set(names)) == len(names)
@@ -212,7 +211,7 @@ def test_a_calculix_deck_that_does_not_solve_is_named(tmp_path, monkeypatch):
     model, _ = build_actuator_model(ActuatorGeometry(resolution=1), formulation="displacement", integration="reduced")
     values = {"C10": 0.0062, "D1": 1.0 / 6.2, "E_fiber": 31000.0, "P": 0.01}
     with pytest.raises(abaqus.CalculixError, match=r"scenario.inp \(CalculiX stopped at time 0.4.*lower --pressure"):
-        scenarios._calculix_displacements(model, values, np.array([0.5, 1.0]), 10, tmp_path, "deck")
+        calculix._calculix_displacements(model, values, np.array([0.5, 1.0]), 10, tmp_path, "deck")
 
 
 def test_a_calculix_scenario_without_a_cache_leaves_no_deck_behind(tmp_path, monkeypatch):
@@ -230,8 +229,8 @@ def test_a_calculix_scenario_without_a_cache_leaves_no_deck_behind(tmp_path, mon
         (deck_dir / "scenario.inp").write_text("*HEADING\n")
         return np.zeros((lam.size, n_nodes, 3))
 
-    monkeypatch.setattr(scenarios.tempfile, "mkdtemp", mkdtemp)
-    monkeypatch.setattr(scenarios, "_calculix_displacements", solved)
+    monkeypatch.setattr(generate.tempfile, "mkdtemp", mkdtemp)
+    monkeypatch.setattr(generate, "_calculix_displacements", solved)
     arrays, _ = scenarios.clean_observations("none", 0.0, FAST["truth_c10"], 1, 2.0, FAST["frames"], "ramp",
                                              pressure=0.003, generator="calculix")
     assert made and not made[0].exists() and np.all(arrays["clean"] == 0.0)
@@ -244,10 +243,9 @@ def test_pooled_table_counts_each_recording_once_and_bounds_every_rate_exactly(t
     scipy.stats.binomtest's interval in between); a file that is no suite's results is named."""
     import json
 
-    from helpers import load_script
     from scipy.stats import binomtest
 
-    suite = load_script("scenarios")
+    from torchfra.scenarios import suite
     assert suite.rate_bound(6, 6, "lower") == pytest.approx(0.05 ** (1 / 6), rel=1e-9)  # 60.7 %
     assert suite.rate_bound(0, 60, "upper") == pytest.approx(1 - 0.05 ** (1 / 60), rel=1e-9)  # 4.9 %
     ci = binomtest(7, 9).proportion_ci(confidence_level=0.90, method="exact")  # two-sided 90 % = one-sided 95 %
@@ -298,9 +296,7 @@ def test_a_suite_row_counts_the_creep_refits_fe_marches_with_its_solves(tmp_path
     as reused."""
     from types import SimpleNamespace
 
-    from helpers import load_script
-
-    suite = load_script("scenarios")
+    from torchfra.scenarios import suite
     Z = np.zeros((3, 4, 3))
     meta = dict(kind="outside", value=0.5, trace={"kind": "cycle"}, snr=40.0, expected="unexplained",
                 generation={"resolution": 2, "frames": 3}, solves=2, seconds=1.0)

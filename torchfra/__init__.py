@@ -1,6 +1,13 @@
-"""torchfra: ensemble finite element models of soft fiber-reinforced actuators and their calibration."""
+"""torchfra: ensemble finite element models of soft fiber-reinforced actuators, calibrated from DIC recordings.
+
+The wings, each importing only those below it (``torchfra/LAYERS.txt``): :mod:`torchfra.cli` (the
+``torchfra`` command), :mod:`torchfra.scenarios` (the diagnosis's proof suite), :mod:`torchfra.diagnosis`
+(missing physics), :mod:`torchfra.report` (figures, TensorBoard), :mod:`torchfra.calibration` (prior
+ensembles and posteriors), :mod:`torchfra.actuator` (the paper's actuator, the candidate registry, a
+user's deck), :mod:`torchfra.io` (files in and out), :mod:`torchfra.observation` (recordings, the
+camera's view), :mod:`torchfra.verification`, :mod:`torchfra.fem` (ensemble-batched finite elements);
+:mod:`torchfra.assimilation` (ensemble Kalman analysis and filters) and :mod:`torchfra.runtime` stand alone.
+Importing torchfra changes nothing in the host process; the commands tune its allocator
+(:mod:`torchfra.runtime.allocator`).
+"""
 __version__ = "0.1.0"
-
-from torchfra.runtime.allocator import keep_freed_memory as _keep_freed_memory
-
-_keep_freed_memory()

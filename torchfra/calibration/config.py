@@ -92,7 +92,7 @@ class CalibrationConfig:
     truth: dict = field(default_factory=dict)
     # the hierarchical filters assimilate every n-th frame (the last included); 1: every frame, the
     # paper's. Fewer sequential updates keep the ensemble's spread along a weakly constrained
-    # direction (scripts/study_assimilation_stride.py); they are compared with the exact posterior
+    # direction (studies/assimilation_stride.py); they are compared with the exact posterior
     # on the same frames
     assimilate_every: int = 1
     # the user's own model (torchfra.calibration.forward.ForwardConfig): an Abaqus/CalculiX deck, the camera's

@@ -378,7 +378,7 @@ class HistoryPhysics:
     """The creeping body of the ``viscoelasticity`` candidate with history variables in its element
     kernel (``fem.viscoelastic``), seen through a recording: the FE model the load-level
     approximation of :class:`ActuatorPhysics` stands in for (it misses 5-8 % of the effect on the
-    actuator, ``scripts/study_viscoelastic.py``). Same interface as ``ActuatorPhysics`` for the
+    actuator, ``studies/viscoelastic.py``). Same interface as ``ActuatorPhysics`` for the
     parameters ``C10, g1, tau1`` (coordinates: log, linear, log; tau1 in units of the recording's
     duration). Before the first frame: see :func:`prehistory` (a recording that starts part-way up a
     ramp started from rest; measured on the suite's g1 = 0.4 recording, which starts at 10 % of its
@@ -389,7 +389,7 @@ class HistoryPhysics:
     load factor and ``dt_fraction`` tau1 in time, the latter waived for steps of at most
     ``dt_free_dlam`` in load factor (``fem.viscoelastic.time_increments``: the history's recurrence
     is exact for a stress linear in time, however long the step against tau1;
-    ``scripts/study_history_steps.py`` measured what the waiver costs in accuracy). Its
+    ``studies/history_steps.py`` measured what the waiver costs in accuracy). Its
     sensitivities are forward differences (one march per parameter): ``1 + 3`` marches per
     evaluation, each kept in ``cache_dir``."""
 

@@ -28,8 +28,8 @@ from torchfra.observation.recording import Recording
 # The noise (mm) below which the paper's actuator model at a mesh resolution, fitted to a recording of a
 # finer body, is flagged by its own discretization error alone on more than 5 % of nulls (the global
 # chi^2 and the candidates' score tests, their union bounded by the sum; the suite's layout: 20 frames,
-# a 2 mm grid, up to 0.022 MPa). Measured by scripts/study_noise_floor.py on a noise-free resolution-2
-# null (results/study_noise_floor.json: at 0.1 mm 4.4-7.8 %, at 0.05 mm 50-88 %); other resolutions are
+# a 2 mm grid, up to 0.022 MPa). Measured by studies/noise_floor.py on a noise-free resolution-2
+# null (studies/results/study_noise_floor.json: at 0.1 mm 4.4-7.8 %, at 0.05 mm 50-88 %); other resolutions are
 # not measured.
 NOISE_FLOOR_MM = {1: 0.25}
 
@@ -70,7 +70,7 @@ def model_floor(sigma: float, resolution: int, deck: DeckModel | None = None, me
     return {"floor_mm": floor, "below": True,
             "why": (f"the noise {sigma:.3g} mm is below {floor:g} mm, where the resolution-{resolution} model's own "
                     "discretization error alone sets off the tests on more than 5 % of recordings without any "
-                    "missing physics (scripts/study_noise_floor.py): the error is estimated by one refinement at the "
+                    "missing physics (studies/noise_floor.py): the error is estimated by one refinement at the "
                     "base fit and taken out of the recording before the tests (then 0.5-1.2 % down to 0.025 mm); if it "
                     f"cannot be, diagnose on a finer mesh (--mesh {resolution + 1}) or take the decision as provisional")}
 

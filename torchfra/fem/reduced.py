@@ -27,8 +27,8 @@ equilibrium states of a few members solved in full (*snapshots*, all load steps)
    ``error_estimate`` (mm). :func:`solve_ensemble` and ``torchfra.calibration.forward`` solve a member in full
    again when its estimate exceeds their tolerance, or when its reduced Newton fails.
 
-Why the polish is needed on the actuator (``scripts/study_reduced_conditioning.py``, results in
-``results/study_reduced_conditioning.json``): its Galerkin tangent has one mode at least 1,400
+Why the polish is needed on the actuator (``studies/reduced_conditioning.py``, results in
+``studies/results/study_reduced_conditioning.json``): its Galerkin tangent has one mode at least 1,400
 times softer than the next (the free end swaying along y, the camera's horizontal; condition number
 1.6e6 to 1.3e7 over the load). The sampled tangent's stiffness along that mode is off by up to 10 %,
 so the hyper-reduced equilibrium lies up to 0.07 mm from the Galerkin one, all of it along that

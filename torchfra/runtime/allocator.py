@@ -10,8 +10,9 @@ filter's reduced re-solves (20 members, resolution 1, 1 thread) as 1 min 13 s of
 5.5 s. The price: the process keeps its peak memory until it exits (the working set of one
 ensemble solve; the machine's memory is not otherwise shared with it).
 
-:func:`keep_freed_memory` is called when ``torchfra`` is imported. ``TORCHFRA_MALLOC=default`` in the
-environment leaves the allocator as it is. Elsewhere than Linux with glibc it does nothing.
+:func:`keep_freed_memory` is called by every ``torchfra`` command (:func:`torchfra.cli.run.run`) and by
+the test suite; importing ``torchfra`` does not change the host process (a notebook calls it itself
+if it wants it). ``TORCHFRA_MALLOC=default`` in the environment leaves the allocator as it is. Elsewhere than Linux with glibc it does nothing.
 """
 from __future__ import annotations
 

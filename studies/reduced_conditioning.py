@@ -1,7 +1,7 @@
 """Why a reduced member still costs what it costs: the conditioning of the actuator's reduced
 problem, and what the hyper-reduction does to its softest mode.
 
-    python scripts/study_reduced_conditioning.py [--members 2] [--mesh 1] [--threads 1]
+    python studies/reduced_conditioning.py [--members 2] [--mesh 1] [--threads 1]
 
 The forward ensemble's reduced members (``fem.reduced``) spend their time in the sampled Newton
 iterations (~2.9 per load step, each one sampled tangent) and in the polish on the full residual
@@ -22,7 +22,7 @@ members that are not snapshots, at every load step:
   equilibrium, and the part of it along the softest mode: the error the sampled phase leaves for the
   polish to remove.
 
-Writes results/study_reduced_conditioning.json (``--out``) and TensorBoard scalars under runs/<name>/.
+Writes studies/results/study_reduced_conditioning.json (``--out``) and TensorBoard scalars under runs/<name>/.
 """
 from __future__ import annotations
 
@@ -62,7 +62,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--mesh", type=int, default=1, help="mesh resolution")
     ap.add_argument("--ensemble", type=int, default=100, help="ensemble the snapshots are chosen from")
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--out", default="results/study_reduced_conditioning.json")
+    ap.add_argument("--out", default="studies/results/study_reduced_conditioning.json")
     ap.add_argument("--name", default="study_reduced_conditioning", help="TensorBoard run under runs/")
     args = ap.parse_args(argv)
     if args.members < 1:
@@ -155,6 +155,6 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    from torchfra.cli import run
+    from torchfra.cli.run import run
 
     run(main)

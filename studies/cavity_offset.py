@@ -1,6 +1,6 @@
 """The cavity-offset imperfection: the morphed mesh against a re-meshed actuator, and its SNR.
 
-    python scripts/study_cavity_offset.py [--offset 0.3] [--resolutions 1 2] [--sizes 0.1 0.25 0.5]
+    python studies/cavity_offset.py [--offset 0.3] [--resolutions 1 2] [--sizes 0.1 0.25 0.5]
 
 For each resolution: the paper's actuator (C10 0.0062 MPa, 0.022 MPa, 20 frames of a ramp) observed
 the way the proof suite observes it (uy, uz on the face x = +8 at the shifted 2 mm DIC grid of
@@ -12,7 +12,7 @@ the discretization difference ||morph - re-mesh|| (norms over frames, points and
 the effect's norm is its SNR at noise 1 mm), their ratio per resolution (it should fall as the
 meshes refine) beside the base model's own change from that resolution to the finest one, and
 the SNR of the proof suite's tabled sizes at resolution 1.
-Writes results/study_cavity_offset.json (``--out``) and runs/<name>/ TensorBoard scalars.
+Writes studies/results/study_cavity_offset.json (``--out``) and runs/<name>/ TensorBoard scalars.
 """
 from __future__ import annotations
 
@@ -26,10 +26,11 @@ import numpy as np
 import torch
 
 from torchfra import fem
+from torchfra.actuator.candidates import BULK_RATIO, E_FIBER
 from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
 from torchfra.observation.operator import ObservationOperator, visible_faces
 from torchfra.report.tensorboard import open_writer
-from torchfra.scenarios import BULK_RATIO, E_FIBER, PRESSURE_MAX, dic_grid, pressure_trace
+from torchfra.scenarios import PRESSURE_MAX, dic_grid, pressure_trace
 
 
 def observe(model, points, params, loads) -> tuple[np.ndarray, float]:
@@ -53,7 +54,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--threads", type=int, default=int(os.environ.get("TORCHFRA_THREADS", "1")))
     ap.add_argument("--name", default="study_cavity_offset")
-    ap.add_argument("--out", default="results/study_cavity_offset.json")
+    ap.add_argument("--out", default="studies/results/study_cavity_offset.json")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     _, recorded = pressure_trace("ramp", a.frames)
@@ -101,7 +102,7 @@ def main() -> None:
             writer.add_scalar("cavity_offset/snr_res1", snr[-1]["snr_at_noise_1mm"], int(round(1000 * s)))
             print(json.dumps(snr[-1]), flush=True)
     writer.close()
-    out = {"command": "python scripts/study_cavity_offset.py " + " ".join(os.sys.argv[1:]), "threads": a.threads,
+    out = {"command": "python studies/cavity_offset.py " + " ".join(os.sys.argv[1:]), "threads": a.threads,
            "C10": a.C10, "frames": a.frames, "comparison": rows, "snr_res1": snr}
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(out, indent=1))
@@ -109,6 +110,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from torchfra.cli import run
+    from torchfra.cli.run import run
 
     run(main)

@@ -1,6 +1,6 @@
 """How long may a time step of the creeping body's march be? The step rule of ``fem.solve_history``.
 
-    python scripts/study_history_steps.py [--tau1 0.005 0.035 0.1 0.3] [--g1 0.3] [--dlam 0.1 0.05 0.025 0.0125]
+    python studies/history_steps.py [--tau1 0.005 0.035 0.1 0.3] [--g1 0.3] [--dlam 0.1 0.05 0.025 0.0125]
 
 ``fem.viscoelastic`` advances each Prony term's history by the exponential (Simo) recurrence, exact
 when the instantaneous stress S0 is linear in time over a step, whatever the step's length against
@@ -22,7 +22,7 @@ shifted 2 mm DIC grid) with one Prony term for several tau1 at once (one member 
 Reported per tau1 and rule: the largest and the RMS difference to the reference at the observed
 points (mm), the norm of the difference over frames, points and components divided by the noise
 ``--sigma`` (the same unit as the suite's SNRs), the creep effect's own norm / sigma for scale, and
-the steps and wall time of each march. Writes results/study_history_steps.json (``--out``).
+the steps and wall time of each march. Writes studies/results/study_history_steps.json (``--out``).
 """
 from __future__ import annotations
 
@@ -33,14 +33,13 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import numpy as np
+import torch
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from torchfra import fem  # noqa: E402
-from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model  # noqa: E402
-from torchfra.scenarios import BULK_RATIO, E_FIBER, PRESSURE_MAX, elastic_frames, face_observer, pressure_trace  # noqa: E402
+from torchfra import fem
+from torchfra.actuator.candidates import BULK_RATIO, E_FIBER
+from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
+from torchfra.scenarios import PRESSURE_MAX, elastic_frames, face_observer, pressure_trace
 
 
 def main() -> None:
@@ -55,7 +54,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--sigma", type=float, default=0.25, help="noise std (mm) the differences are measured in")
     ap.add_argument("--threads", type=int, default=int(os.environ.get("TORCHFRA_THREADS", "1")))
-    ap.add_argument("--out", default="results/study_history_steps.json")
+    ap.add_argument("--out", default="studies/results/study_history_steps.json")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     times, recorded = pressure_trace("cycle", a.frames)
@@ -123,6 +122,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from torchfra.cli import run
+    from torchfra.cli.run import run
 
     run(main)

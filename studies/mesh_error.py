@@ -1,6 +1,6 @@
 """The diagnosis mesh's own discretization error, and what it does to the surrogate test.
 
-    python scripts/study_mesh_error.py [--effect compressibility] [--size 3] [--noise 0.25]
+    python studies/mesh_error.py [--effect compressibility] [--size 3] [--noise 0.25]
 
 A proof-suite recording of ``effect`` at ``size`` made at ``--resolution`` (2: the suite's) without
 noise, diagnosed by the resolution-1 model told the noise ``--noise`` (the right candidate only:
@@ -11,7 +11,7 @@ this kind. Reported per candidate: the score left by the refit as it is, and aft
 estimated by one refinement (``diagnosis.refit.discretization_error``), is taken out; and the probability
 that at least one of them fails the surrogate test at the diagnosis' level on a noisy recording
 (non-central chi^2; one-sided for a one-sided candidate), against the noise alone.
-Writes ``--out`` (results/study_mesh_error.json) and runs/<name>/ (the diagnosis, its cached solves:
+Writes ``--out`` (studies/results/study_mesh_error.json) and runs/<name>/ (the diagnosis, its cached solves:
 a rerun solves nothing).
 """
 from __future__ import annotations
@@ -57,7 +57,7 @@ def main(argv=None) -> dict:
     p.add_argument("--resolution", type=int, default=2, choices=(2, 3), help="mesh of the recording (the diagnosis: 1)")
     p.add_argument("--name", default=None, help="run name (default: study_mesh_error_<effect>_s<size>_res<r>)")
     p.add_argument("--runs-dir", default="runs")
-    p.add_argument("--out", default="results/study_mesh_error.json")
+    p.add_argument("--out", default="studies/results/study_mesh_error.json")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (recorded)")
     a = p.parse_args(argv)
     if not (a.noise > 0 and math.isfinite(a.noise)):
@@ -84,7 +84,7 @@ def main(argv=None) -> dict:
     per = {n: {"dof": before[n]["dof"], "one_sided": bool(rows[n].get("one_sided")),
                "score_as_it_is": before[n]["score"], "score_mesh_error_out": after[n]["score"]} for n in before}
     out = {
-        "command": " ".join(["python scripts/study_mesh_error.py", *(sys.argv[1:] if argv is None else argv)]),
+        "command": " ".join(["python studies/mesh_error.py", *(sys.argv[1:] if argv is None else argv)]),
         "effect": a.effect, "size": a.size, "value": meta["value"], "recording_resolution": a.resolution,
         "diagnosis_resolution": d["model"]["resolution"], "noise_mm": a.noise, "level": level,
         "refit": right["fit"]["parameters"], "rms_noise_units": right["fit"]["rms"],
@@ -108,6 +108,6 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    from torchfra.cli import run
+    from torchfra.cli.run import run
 
     run(main)

@@ -1,6 +1,6 @@
 """How little noise the diagnosis can take: the base model's own discretization error on a null.
 
-    python scripts/study_noise_floor.py [--c10 0.0062] [--resolution 2]
+    python studies/noise_floor.py [--c10 0.0062] [--resolution 2]
 
 A proof-suite null (no effect, true C10 ``--c10``) recorded at ``--resolution`` (2: the suite's)
 *without noise* is diagnosed by the resolution-1 model. The base fit cannot explain the recording
@@ -16,7 +16,7 @@ The same is measured with the error estimated by one refinement (``diagnosis.ref
 at the base fit) taken out of the recording before the fit: how far such a correction would move the
 floor. The diagnosis does not do this for the base fit today (README "How little noise").
 
-Writes ``--out`` (results/study_noise_floor.json) and runs/<name>/ (both diagnoses and their cached
+Writes ``--out`` (studies/results/study_noise_floor.json) and runs/<name>/ (both diagnoses and their cached
 FE solves: a rerun solves nothing).
 """
 from __future__ import annotations
@@ -93,7 +93,7 @@ def main(argv=None) -> dict:
     p.add_argument("--alpha", type=float, default=0.01, help="the diagnosis' level")
     p.add_argument("--name", default=None, help="run name (default: study_noise_floor_c<c10>_res<r>)")
     p.add_argument("--runs-dir", default="runs")
-    p.add_argument("--out", default="results/study_noise_floor.json")
+    p.add_argument("--out", default="studies/results/study_noise_floor.json")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (recorded)")
     a = p.parse_args(argv)
     if not (a.noise > 0 and math.isfinite(a.noise)):
@@ -120,7 +120,7 @@ def main(argv=None) -> dict:
     out_fit = diagnose(replace(rec, Z=rec.Z - delta), run_dir=run_dir / "mesh_error_out", **kw)
     t_as, t_out = scan(as_is, a.noise, a.alpha), scan(out_fit, a.noise, a.alpha)
     out = {
-        "command": " ".join(["python scripts/study_noise_floor.py", *(sys.argv[1:] if argv is None else argv)]),
+        "command": " ".join(["python studies/noise_floor.py", *(sys.argv[1:] if argv is None else argv)]),
         "truth_c10": a.c10, "recording_resolution": a.resolution, "diagnosis_resolution": as_is["model"]["resolution"],
         "observations": as_is["observations"], "whitened_at_mm": a.noise, "alpha": a.alpha,
         "mesh_error": info,
@@ -148,6 +148,6 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    from torchfra.cli import run
+    from torchfra.cli.run import run
 
     run(main)

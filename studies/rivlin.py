@@ -1,6 +1,6 @@
 """Mesh-refinement study of the plane-strain Rivlin tube (hybrid Hex20 vs the closed form).
 
-    python scripts/study_rivlin.py [--meshes 1,2,1 2,4,1 ...] [--a-over-A 1.5] [--name rivlin]
+    python studies/rivlin.py [--meshes 1,2,1 2,4,1 ...] [--a-over-A 1.5] [--name rivlin]
 
 Prints a JSON table (mesh, dofs, a_FE, a_exact, rel error, order, Newton iterations, wall_s) and
 writes it to runs/<name>/summary.json with TensorBoard scalars (error vs refinement level) beside it.
@@ -71,6 +71,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from torchfra.cli import run
+    from torchfra.cli.run import run
 
     run(main)

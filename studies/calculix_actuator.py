@@ -1,6 +1,6 @@
 """CalculiX cross-check of the actuator model at a partial cavity pressure.
 
-    OMP_NUM_THREADS=1 TORCHFRA_THREADS=1 python scripts/study_calculix_actuator.py \\
+    OMP_NUM_THREADS=1 TORCHFRA_THREADS=1 python studies/calculix_actuator.py \\
         --resolution 1 --pressure 0.0044 --c10 0.0048 --increments 10 --out calculix_actuator_p0044
 
 Builds the actuator (``build_actuator_model``; C10, D1 = 1 / (bulk_ratio C10), E_fiber, cavity
@@ -62,11 +62,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from torchfra import fem  # noqa: E402
-from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model  # noqa: E402
-from torchfra.io.abaqus.write import _dat_blocks, write_inp  # noqa: E402
+from torchfra import fem
+from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
+from torchfra.io.abaqus.write import _dat_blocks, write_inp
 
 # name: (formulation, integration, cavity pressure, fiber element)
 #   cavity pressure "follower2": FollowerPressure on the cavity faces with 2x2 face points (CalculiX's
@@ -272,7 +270,7 @@ def main(argv=None) -> dict:
     paths = {d: paths.get(d, run_dir / DECKS[d]) for d in a.decks}
     n, tracked = model.n_nodes, info["tracked_node"]
     summary = {
-        "command": "python scripts/study_calculix_actuator.py " + " ".join(sys.argv[1:] if argv is None else argv),
+        "command": "python studies/calculix_actuator.py " + " ".join(sys.argv[1:] if argv is None else argv),
         "resolution": a.resolution, "pressure_MPa": a.pressure, "params": params, "bulk_ratio": a.bulk_ratio,
         "model": {k: int(info[k]) for k in ("elements", "nodes", "fiber_elements", "fiber_nodes_count", "dofs")},
         "tracked_node": tracked, "tracked_node_X_mm": model.X[tracked].tolist(), "load_factors": factors,
@@ -351,6 +349,6 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    from torchfra.cli import run
+    from torchfra.cli.run import run
 
     run(main)

@@ -1,6 +1,6 @@
 """Mesh study of the actuator at full pressure: one member (C10 = 1.1 kappa_t) per resolution.
 
-    python scripts/study_actuator.py --resolutions 1 2 3 --out actuator_study
+    python studies/actuator.py --resolutions 1 2 3 --out actuator_study
 
 writes runs/<out>/summary.json with, per resolution: elements, fiber elements, dofs, Newton
 iterations, wall time, tracked-node displacement (y, z) at t = 1, tip rotation (deg), cavity
@@ -15,12 +15,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from torchfra import fem  # noqa: E402
-from torchfra.actuator.candidates import KAPPA_T  # noqa: E402
-from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model  # noqa: E402
-from torchfra.fem.constraints import rotation_matrix  # noqa: E402
+from torchfra import fem
+from torchfra.actuator.candidates import KAPPA_T
+from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
+from torchfra.fem.constraints import rotation_matrix
 
 
 def solve_resolution(resolution: int, pressure: float, bulk_ratio: float, integration: str) -> dict:
@@ -72,13 +70,13 @@ def main(argv=None) -> dict:
     for row in rows:
         row["tracked_rel_change_vs_finest"] = float(np.linalg.norm(np.asarray(row["tracked_u_yz_mm"]) - finest)
                                                     / np.linalg.norm(finest))
-    summary = {"command": "python scripts/study_actuator.py " + " ".join(argv or sys.argv[1:]),
+    summary = {"command": "python studies/actuator.py " + " ".join(argv or sys.argv[1:]),
                "threads": a.threads, "integration": a.integration, "pressure_MPa": a.pressure, "bulk_ratio": a.bulk_ratio, "rows": rows}
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     return summary
 
 
 if __name__ == "__main__":
-    from torchfra.cli import run
+    from torchfra.cli.run import run
 
     run(main)

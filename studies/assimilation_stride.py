@@ -1,7 +1,7 @@
 """Study: the hierarchical filter (polynomial slave) assimilating every n-th frame, against the exact
 posterior on the same frames, for a parameter set (default C10 with Mooney-Rivlin C01).
 
-    python scripts/study_assimilation_stride.py --out results/study_assimilation_stride_C10_C01.json
+    python studies/assimilation_stride.py --out studies/results/study_assimilation_stride_C10_C01.json
 
 Reuses the forward ensemble and recording of the calibration run with the same settings (runs
 `calibrate.py`'s experiment without the restart filter and coverage if they are not cached), then
@@ -10,19 +10,16 @@ JSON: per stride and seed, each parameter's distance from the exact mean (exact 
 """
 import argparse
 import json
-import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import numpy as np
+import torch
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from torchfra.assimilation import hierarchical_filter  # noqa: E402
-from torchfra.calibration.config import CalibrationConfig  # noqa: E402
-from torchfra.calibration.exact import ensemble_stats  # noqa: E402
-from torchfra.calibration.experiment import run_calibration  # noqa: E402
-from torchfra.calibration.priors import parse_truth  # noqa: E402
+from torchfra.assimilation import hierarchical_filter
+from torchfra.calibration.config import CalibrationConfig
+from torchfra.calibration.exact import ensemble_stats
+from torchfra.calibration.experiment import run_calibration
+from torchfra.calibration.priors import parse_truth
 
 
 def main(argv=None) -> dict:
@@ -70,6 +67,6 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    from torchfra.cli import run
+    from torchfra.cli.run import run
 
     run(main)

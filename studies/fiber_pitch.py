@@ -1,7 +1,7 @@
 """The fiber-pitch candidate on the actuator: what it is against re-built models, what a pitch change
 shows on the DIC grid, and why the diagnosis sees it through a secant.
 
-    python scripts/study_fiber_pitch.py [--pitches 1.5 2.5 3 4] [--resolutions 1 2]
+    python studies/fiber_pitch.py [--pitches 1.5 2.5 3 4] [--resolutions 1 2]
 
 Observations: the proof suite's DIC grid (``scenarios.dic_grid``, 2 mm, off-node) over its 20-frame
 ramp to 0.022 MPa. Per resolution:
@@ -18,7 +18,7 @@ ramp to 0.022 MPa. Per resolution:
   discrete response carries a ripple whose exact slope dwarfs the physical one;
 - ``cost``: wall seconds of one solve with and without the candidate (same run, same threads).
 
-Writes results/study_fiber_pitch.json (``--out``) and TensorBoard scalars under runs/<name>/.
+Writes studies/results/study_fiber_pitch.json (``--out``) and TensorBoard scalars under runs/<name>/.
 """
 from __future__ import annotations
 
@@ -33,11 +33,12 @@ import torch
 from tqdm import tqdm
 
 from torchfra import fem
+from torchfra.actuator.candidates import BULK_RATIO, E_FIBER
 from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model, helix_points
 from torchfra.fem.sensitivity import sensitivities
 from torchfra.observation.operator import ObservationOperator, visible_faces
 from torchfra.report.tensorboard import open_writer
-from torchfra.scenarios import BULK_RATIO, E_FIBER, PRESSURE_MAX, dic_grid, pressure_trace
+from torchfra.scenarios import PRESSURE_MAX, dic_grid, pressure_trace
 
 OPTIONS = fem.NewtonOptions(rtol=1e-10, stagnation_tol=1e-8)
 
@@ -80,7 +81,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--threads", type=int, default=int(os.environ.get("TORCHFRA_THREADS", "1")))
     ap.add_argument("--name", default="study_fiber_pitch")
-    ap.add_argument("--out", default="results/study_fiber_pitch.json")
+    ap.add_argument("--out", default="studies/results/study_fiber_pitch.json")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     torch.set_default_dtype(torch.float64)
@@ -92,7 +93,7 @@ def main(argv=None) -> dict:
     per_res = 2 + 3 * len(a.pitches) + 2 * len(a.secants)
     bar = tqdm(total=len(a.resolutions) * per_res, desc="fiber pitch study: FE solves", unit="solve",
                bar_format="{l_bar}{bar}| {n}/{total} [{elapsed} elapsed, ~{remaining} left]")
-    out = {"command": "python scripts/study_fiber_pitch.py " + " ".join(argv if argv is not None else os.sys.argv[1:]),
+    out = {"command": "python studies/fiber_pitch.py " + " ".join(argv if argv is not None else os.sys.argv[1:]),
            "threads": a.threads, "C10": a.C10, "frames": a.frames, "nominal_pitch_deg": nominal,
            "note": "norms over frames, points and (uy, uz) in mm: the signal-to-noise ratio at 1 mm i.i.d. noise",
            "resolutions": []}
@@ -164,6 +165,6 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    from torchfra.cli import run
+    from torchfra.cli.run import run
 
     run(main)

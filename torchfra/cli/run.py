@@ -1,4 +1,4 @@
-"""How the scripts end: a user's mistake is one paragraph on stderr, not a traceback.
+"""How the commands end: a user's mistake is one paragraph on stderr, not a traceback.
 
 ``run(main)`` calls ``main()`` (which parses ``sys.argv``). A wrong input (``ValueError`` and with
 it the project's own errors: ``RecordingError``, ``ParameterError``, ``MeshError``,
@@ -41,6 +41,9 @@ def message(exc: BaseException) -> str:
 def run(main: Callable[[], object]) -> NoReturn:
     """Run a script's ``main`` and exit: 0 (or the exit status ``main`` returns as an int), 2 on a
     wrong input, 130 when interrupted."""
+    from torchfra.runtime.allocator import keep_freed_memory
+
+    keep_freed_memory()  # a command's process is torchfra's own: freed blocks are kept for the next Newton step
     debug = DEBUG_FLAG in sys.argv[1:]
     if debug:
         sys.argv[1:] = [a for a in sys.argv[1:] if a != DEBUG_FLAG]

@@ -1,6 +1,6 @@
 """A creeping actuator: the FE model with history variables against the load-level approximation.
 
-    python scripts/study_viscoelastic.py [--resolution 1] [--g1 0.05 0.15 0.4] [--tau1 0.1]
+    python studies/viscoelastic.py [--resolution 1] [--g1 0.05 0.15 0.4] [--tau1 0.1]
 
 The proof suite's viscoelastic recordings (``scenarios.py``, effect ``viscoelasticity``) and the
 diagnosis' candidate (``torchfra.actuator.history``) both describe a creeping body by the correspondence
@@ -17,7 +17,7 @@ shifted 2 mm DIC grid), three models:
 
 Reported per g1: the effect's SNR ``||fe - base||`` and the approximation's error ``||fe - approx||``
 (norms over frames, points and components; mm, = SNR at noise 1 mm), the largest difference, and
-the wall time of each solve. Writes results/study_viscoelastic_res<r>.json (``--out``).
+the wall time of each solve. Writes studies/results/study_viscoelastic_res<r>.json (``--out``).
 """
 from __future__ import annotations
 
@@ -28,15 +28,14 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import numpy as np
+import torch
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from torchfra import fem  # noqa: E402
-from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model  # noqa: E402
-from torchfra.actuator.history import creep_load  # noqa: E402
-from torchfra.scenarios import BULK_RATIO, E_FIBER, PRESSURE_MAX, elastic_frames, face_observer, pressure_trace  # noqa: E402
+from torchfra import fem
+from torchfra.actuator.candidates import BULK_RATIO, E_FIBER
+from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
+from torchfra.actuator.history import creep_load
+from torchfra.scenarios import PRESSURE_MAX, elastic_frames, face_observer, pressure_trace
 
 
 def main() -> None:
@@ -51,7 +50,7 @@ def main() -> None:
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
-    out = Path(a.out or f"results/study_viscoelastic_res{a.resolution}.json")
+    out = Path(a.out or f"studies/results/study_viscoelastic_res{a.resolution}.json")
     times, recorded = pressure_trace("cycle", a.frames)
     lam = recorded / PRESSURE_MAX
     base_params = {"C10": a.C10, "D1": 1.0 / (BULK_RATIO * a.C10), "E_fiber": E_FIBER, "P": PRESSURE_MAX}
@@ -99,6 +98,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    from torchfra.cli import run
+    from torchfra.cli.run import run
 
     run(main)

@@ -1,0 +1,4 @@
+"""``python -m torchfra`` is the ``torchfra`` command."""
+from torchfra.cli.main import main
+
+main()

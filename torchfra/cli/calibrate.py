@@ -1,0 +1,245 @@
+"""Calibrate the actuator's parameters (C10, or any parameter set) from a recording with the
+hierarchical master/slave EnKF (paper Eqs. 21-23), its nonlinear-slave variant, the restart EnKF
+and the exact grid posterior.
+
+    python scripts/calibrate.py --config seed                  # the paper's experiment (§4.1)
+    python scripts/calibrate.py --param C10=lognormal:0.0062,0.0011 --param E_fiber=lognormal:31000,8000 \
+        --truth C10=0.0048 --truth E_fiber=25000 --name two_params   # two parameters, synthetic recording
+    python scripts/calibrate.py --config my_actuator.toml --recording my_dic.csv --noise 0.5
+    python scripts/calibrate.py --recording my_dic.csv --noise 0.5 --name bench_test
+    python scripts/calibrate.py --recording vic3d_exports/ --pressure trace.csv --landmarks lm.csv --name test1
+    torchrun --standalone --nproc-per-node 2 scripts/calibrate.py --config seed   # forward ensemble on 2 ranks
+
+writes runs/<name>/: summary.json, bands.png, pdfs.png (pairs.png for several parameters), TensorBoard events; the forward ensemble is
+cached in runs/forward_cache/<settings>/ (shared by runs with the same prior, mesh and load) and the restart filter checkpoints after every step, so a killed
+run resumes without redoing finished FE work.
+"""
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from contextlib import contextmanager
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+from torchfra.calibration.config import (
+    SEED,
+    CalibrationConfig,
+    ForwardConfig,
+)
+from torchfra.calibration.experiment import run_calibration
+from torchfra.calibration.forward import forward_config, forward_dir, observed_surface, run_forward
+from torchfra.calibration.frames import validate_recording
+from torchfra.calibration.priors import ParameterSet, parse_truth, read_parameter_file
+from torchfra.calibration.restart import RestartRanks, serve_restart
+from torchfra.cli.run import add_deck_flags, check_deck_flags
+from torchfra.io.dic.importer import add_arguments, recording_path
+from torchfra.report.calibration import write_calibration_outputs
+from torchfra.runtime.distributed import finish, ranks
+
+CONFIGS = {"seed": SEED}
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+@contextmanager
+def forward_ranks(config: CalibrationConfig, run_dir: Path, n: int, argv: list[str]):
+    """The forward ensemble and the restart filter on ``n`` processes through torch.distributed
+    (gloo, this machine): this process becomes rank 0 of the group, and ranks 1..n-1 are this script
+    again with the same arguments, which solve their share of the forward members (torchfra.calibration.forward)
+    and then of every restart forecast (``calibration.serve_restart``), and leave at rank 0's stop.
+    Yields the :class:`RestartRanks` to hand to ``run_calibration`` (None: no other rank; none is
+    started when the ensemble is on disk and the restart filter is off). On the way out the stop is
+    sent, the group left, the environment restored, and ranks still running when the work did not
+    finish are stopped."""
+    fwd, where = forward_config(config), forward_dir(config, run_dir.parent)
+    per_file = 1 if fwd.method == "reduced" else fwd.chunk
+
+    def solved() -> bool:
+        return all((where / "members" / f"chunk_{s:05d}.npz").exists() for s in range(0, fwd.members, per_file))
+
+    if n <= 1 or (solved() and not config.restart):
+        yield None
+        return
+    group = {"MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(_free_port()), "WORLD_SIZE": str(n)}
+    names = (*group, "RANK", "LOCAL_RANK", "LOCAL_WORLD_SIZE")
+    saved = {k: os.environ.get(k) for k in names}
+    env = dict(os.environ, **group, LOCAL_WORLD_SIZE=str(n), MKL_NUM_THREADS=str(fwd.threads),
+               OMP_NUM_THREADS=str(fwd.threads))
+    procs = [subprocess.Popen([sys.executable, str(Path(__file__).resolve()), *argv], stdout=subprocess.DEVNULL,
+                              env={**env, "RANK": str(i), "LOCAL_RANK": str(i)}) for i in range(1, n)]
+    os.environ.update(group, RANK="0", LOCAL_RANK="0", LOCAL_WORLD_SIZE=str(n))
+    service = RestartRanks(ranks()) if config.restart else None
+    try:
+        yield service
+    finally:
+        if service is not None:
+            service.stop()
+        finish(ranks(), wait=False)
+        done = solved() and (service is None or service.stopped)
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+        for h in procs:
+            stopped = False
+            if h.poll() is None and not done:
+                h.terminate()  # this process failed or was stopped: do not leave ranks behind
+                stopped = True
+            if h.wait() != 0 and not stopped:
+                print(f"rank process {h.pid} failed (exit status {h.returncode}); the forward members and "
+                      "restart steps it had not saved are solved by a rerun", file=sys.stderr)
+
+
+def _base_config(a) -> tuple[CalibrationConfig, dict]:
+    """The named config or the TOML file's, and the parameter set given by flags or file (empty: the
+    config's own, the paper's C10 prior)."""
+    prior: dict = {}
+    if a.config in CONFIGS:
+        base = CONFIGS[a.config]
+    elif a.config.endswith(".toml"):
+        base = SEED
+        prior = read_parameter_file(a.config)
+    else:
+        raise ValueError(f"--config {a.config!r}: not a named config ({', '.join(sorted(CONFIGS))}) nor a .toml file "
+                         "of priors")
+    if a.param or a.fixed:
+        if prior:
+            raise ValueError("give the parameters in the --config file or by --param/--fixed, not both")
+        ParameterSet.parse(a.param or [], a.fixed or [])  # checked here: each bad entry named before any work
+        prior = {"parameters": list(a.param or []), "fixed": list(a.fixed or [])}
+        if not a.param:
+            raise ValueError("--fixed needs the uncertain parameters named with --param")
+    return base, prior
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--config", default="seed",
+                   help="named settings to start from (seed: the paper's experiment), or a TOML file of priors "
+                        "([parameters], optional [fixed] and [truth] tables; see torchfra.calibration.priors)")
+    p.add_argument("--param", action="append", default=None, metavar="NAME=KIND:A,B",
+                   help="an uncertain parameter and its prior for the parameter itself: lognormal:MEAN,STD, "
+                        "normal:MEAN,STD or uniform:LOW,HIGH (repeat for several; default the config's C10 prior)")
+    p.add_argument("--fixed", action="append", default=None, metavar="NAME=VALUE",
+                   help="a parameter held at a value (repeatable), e.g. E_fiber=31000")
+    p.add_argument("--name", default=None, help="run name: outputs go to <runs-dir>/<name>/ (default: the config)")
+    p.add_argument("--runs-dir", default="runs")
+    p.add_argument("--recording", default=None,
+                   help="CSV/NPZ recording (default: synthetic at --truth), or with --pressure a DIC export "
+                        "(a folder of per-frame files or one file), converted into runs/<name>/recording.csv")
+    p.add_argument("--truth", action="append", default=None, metavar="[NAME=]VALUE",
+                   help="value of the synthetic recording: a number for C10 (MPa), or NAME=VALUE per uncertain "
+                        "parameter (repeatable; a parameter not given takes its null value)")
+    p.add_argument("--noise", type=float, default=None, help="observation noise std (mm)")
+    p.add_argument("--members", type=int, default=None, help="ensemble size N_s")
+    p.add_argument("--mesh", type=int, default=None, help="mesh resolution of the FE model")
+    p.add_argument("--forward-pressure", type=float, default=None,
+                   help="largest pressure of the forward ensemble (MPa; default the config's, 0.022)")
+    p.add_argument("--assimilate-every", type=int, default=None,
+                   help="the hierarchical filters assimilate every n-th frame (default 1, the paper's); fewer "
+                        "updates keep their spread along a weakly constrained direction of several parameters")
+    p.add_argument("--no-restart", action="store_true", help="skip the restart filter (the FE-costly baseline)")
+    p.add_argument("--restart-every", type=int, default=None, help="restart filter assimilates every n-th frame")
+    p.add_argument("--coverage-seeds", type=int, default=None, help="noise re-draws for the coverage study")
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (recorded)")
+    p.add_argument("--workers", type=int, default=2,
+                   help="processes sharing the forward ensemble and the restart filter's FE re-solves through "
+                        "torch.distributed (one per core; this one is rank 0)")
+    add_arguments(p)
+    add_deck_flags(p)
+    raw_argv = list(sys.argv[1:] if argv is None else argv)
+    a = p.parse_args(argv)
+    check_deck_flags(a, "forward_pressure")
+    torch.set_num_threads(a.threads)
+    torch.set_default_dtype(torch.float64)
+    base, prior = _base_config(a)
+    r = ranks()
+    if r.parallel:  # torchrun: the ranks share the forward ensemble and the restart filter's re-solves;
+        a.workers = 1  # rank 0 does everything else
+        if r.rank != 0:
+            fwd_only = {"members": a.members, "resolution": a.mesh, "pressure": a.forward_pressure, "inp": a.inp,
+                        "camera": a.camera, "face": a.face}
+            config = replace(base, **prior, **{k: v for k, v in fwd_only.items() if v is not None})
+            try:
+                run_forward(forward_config(config), forward_dir(config, a.runs_dir), progress=False)
+                if config.restart and not a.no_restart:
+                    serve_restart(config, r)
+            finally:  # leave the group before the interpreter exits: a gloo group still open at exit can
+                finish(r, wait=False)  # abort the process ("terminate called without an active exception")
+            return {}
+    if a.pressure is not None and a.recording is None:
+        raise ValueError("--pressure names the trace of a DIC export: give the export with --recording")
+    run_dir = Path(a.runs_dir) / (a.name or Path(a.config).stem)
+    if a.recording is not None:
+        face = observed_surface(ForwardConfig(inp=a.inp, camera=a.camera, face=a.face or "")) if a.inp else None
+        a.recording = str(recording_path(a.recording, a, run_dir, face))
+    truth = {**prior.pop("truth", {}), **parse_truth(a.truth)}
+    overrides = {"recording": a.recording, "truth_c10": truth.pop("C10", None), "noise": a.noise, "members": a.members,
+                 "resolution": a.mesh, "pressure": a.forward_pressure, "restart_every": a.restart_every,
+                 "coverage_seeds": a.coverage_seeds, "assimilate_every": a.assimilate_every, "inp": a.inp,
+                 "camera": a.camera, "face": a.face}
+    config: CalibrationConfig = replace(base, **prior, **{k: v for k, v in overrides.items() if v is not None})
+    if config.inp:  # the deck is read and checked now; its pressure is the forward ensemble's
+        config = replace(config, pressure=forward_config(config).pressure)
+    if truth and config.recording is None:
+        config = replace(config, truth=truth)
+    elif truth:
+        raise ValueError("--truth sets the synthetic recording's values; a recording file has its own")
+    if config.recording is None and config.parameters:
+        from torchfra.calibration.forward import truth_values
+
+        truth_values(config)  # every value checked against its prior before any FE work
+    if a.no_restart:
+        config = replace(config, restart=False)
+    t0 = time.perf_counter()
+    validate_recording(config)  # refuse a bad file before any FE work or helper process
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # run the cleanup below when killed politely
+    if r.parallel:  # torchrun started the ranks
+        service = RestartRanks(r) if config.restart else None
+        try:
+            out = run_calibration(config, run_dir, restart_threads=a.threads, restart_ranks=service)
+        finally:
+            if service is not None:
+                service.stop()
+        finish(r, wait=False)
+    else:
+        with forward_ranks(config, run_dir, a.workers, raw_argv) as service:
+            out = run_calibration(config, run_dir, restart_threads=a.threads if service else max(a.threads, a.workers),
+                                  restart_ranks=service)
+    summary = write_calibration_outputs(out, run_dir, time.perf_counter() - t0)
+    fit = summary.get("data_fit", {"ok": True})
+    if not fit["ok"]:  # flagged, never reported as a result
+        print("the data do not fit the model/prior; no calibration result:\n- " + "\n- ".join(fit["reasons"])
+              + f"\n(the filters' outputs are in {run_dir} for inspection only)", file=sys.stderr)
+        print(json.dumps({"result": None, "data_fit": fit, "run": str(run_dir)}, indent=1))
+        return summary
+    for name, row in summary["filters"].items():  # frames the filter's forecasts do not explain
+        flags = row.get("innovation_flags", {}).get("frames", [])
+        if flags:
+            print(f"innovation check, {name}: {len(flags)} of {row['frames_assimilated']} frames outside the 99.99 % "
+                  f"band of the normalized innovation, the first at frame index {flags[0]} (summary.json innovation_flags): the "
+                  "filter's forecasts, with their spread and the noise, do not explain the recording there",
+                  file=sys.stderr)
+    print(json.dumps({"filters": {k: {p: v[p] for p in summary["parameters"]} for k, v in summary["filters"].items()},
+                      "truth": summary["truth"], "run": str(run_dir)}, indent=1))
+    return summary
+
+
+
+if __name__ == "__main__":
+    from torchfra.cli.run import run
+
+    run(main)
