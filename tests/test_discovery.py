@@ -676,7 +676,7 @@ def test_a_noise_below_the_models_own_floor_is_said():
     scanned noise at which the model's own discretization error flags a null at most 5 % of the time,
     more than 5 % at the next noise below. Under it a diagnosis says so and what to do; at or above it,
     on a user's deck (its error unknown) or on a recording of the diagnosis mesh itself it does not."""
-    study = json.loads((Path(__file__).resolve().parents[1] / "results" / "study_noise_floor.json").read_text())
+    study = json.loads((Path(__file__).resolve().parents[1] / "studies" / "results" / "study_noise_floor.json").read_text())
     scan = study["noisy_null_flagged"]["as_it_is"]
     assert NOISE_FLOOR_MM[1] == study["floor_mm_at_5_percent"]["as_it_is"]
     below = max((float(s) for s in scan if float(s) < NOISE_FLOOR_MM[1]))
