@@ -18,6 +18,7 @@ import numpy as np
 from torchfra import fem
 from torchfra.actuator.candidates import ACTUATOR_ONLY, GRAVITY_DIRECTION
 from torchfra.io.abaqus.read import read_inp
+from torchfra.io.files import check_regular
 from torchfra.observation.operator import visible_faces
 
 CAMERAS = {"+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0)}
@@ -41,12 +42,7 @@ def read_deck(path) -> tuple[fem.Model, dict[str, float], str]:
 
 
 def _deck_path(path) -> Path:
-    path = Path(path)
-    if path.is_dir():
-        raise ValueError(f"--inp {path}: is a folder; give the deck's .inp file")
-    if not path.is_file():
-        raise ValueError(f"--inp {path}: no such deck file")
-    return path
+    return check_regular(Path(path), "deck", error=lambda message: ValueError(f"--inp {message}"))
 
 
 @functools.lru_cache(maxsize=8)

@@ -39,10 +39,12 @@ from torchfra.actuator.candidates import (
     actuator_model,
     candidates_of,
 )
+from torchfra.io.files import read_text
 
 KINDS = ("lognormal", "normal", "uniform")
 # parameters that act on the frames' load factors, not on the FE solve (the candidate that carries them)
 SENSOR = SENSOR_PARAMETERS
+MAX_PARAMETER_FILE_BYTES = 1 << 20  # a parameter file is a few lines; a bigger one is the wrong file
 TAIL = 4.0  # a normal prior's mean +- TAIL stds (and a lognormal's matching quantiles) must be admissible
 
 
@@ -347,10 +349,9 @@ def read_parameter_file(path) -> dict:
     import tomllib
 
     path = Path(path)
+    text = read_text(path, what="parameter", max_bytes=MAX_PARAMETER_FILE_BYTES, error=PriorError)
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise PriorError(f"{path}: cannot read it ({exc})") from None
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise PriorError(f"{path}: not valid TOML ({exc})") from None
     unknown = sorted(set(data) - {"parameters", "fixed", "truth"})

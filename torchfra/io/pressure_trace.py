@@ -51,9 +51,7 @@ def _column(names: list[str], accepted) -> int | None:
 def read_pressure_trace(path, pressure_units: str | None = None) -> PressureTrace:
     """Read the trace; ``pressure_units`` names the unit when the header does not."""
     path = Path(path)
-    if not path.is_file():
-        raise DicError(f"{path}: no such pressure trace")
-    lines = read_lines(path)
+    lines = read_lines(path, what="pressure trace")
     for h, line in enumerate(lines[:MAX_PREAMBLE]):
         cells, delim = split_line(line)
         parsed = [name_unit(c) for c in cells]

@@ -20,13 +20,13 @@ from __future__ import annotations
 
 import csv
 import itertools
-import stat
 import zipfile
 import zlib
 from pathlib import Path
 
 import numpy as np
 
+from torchfra.io.files import check_regular, open_binary
 from torchfra.observation.recording import (
     COLUMNS,
     MAX_FRAME_POINTS,
@@ -112,7 +112,7 @@ def _number(s: str) -> float:
 
 
 def table_from_csv(path: Path, max_line_bytes: int = MAX_LINE_BYTES, max_rows: int = MAX_ROWS) -> dict[str, np.ndarray]:
-    with open(path, "rb") as f:
+    with open_binary(path, "recording", error=RecordingError) as f:
         _refuse_non_text(path, f.read(4))
         f.seek(0)
         lines = _text_lines(f, path, max_line_bytes)
@@ -207,23 +207,24 @@ def _grid_to_long(a: dict[str, np.ndarray], path: Path) -> dict[str, np.ndarray]
 
 
 def table_from_npz(path: Path, max_rows: int = MAX_ROWS) -> dict[str, np.ndarray]:
-    with open(path, "rb") as f:
+    with open_binary(path, "recording", error=RecordingError) as f:
         head = f.read(4)
-    if head not in (b"PK\x03\x04", b"PK\x05\x06"):
-        raise RecordingError(f"{path}: not an NPZ (zip) archive{' (the file is empty)' if not head else ''}; an "
-                             f"NPZ recording is written by numpy.savez with the arrays {', '.join(COLUMNS)}")
-    try:
-        with zipfile.ZipFile(path) as z:
-            names = set(z.namelist())
-            missing = [c for c in COLUMNS if c + ".npy" not in names]
-            if missing:
-                raise RecordingError(f"{path}: missing array(s) {', '.join(missing)}; an NPZ recording holds "
-                                     f"the arrays {', '.join(COLUMNS)}, one entry per point per frame")
-            a = {c: _npz_array(z, c, path, max_rows) for c in COLUMNS}
-    except RecordingError:
-        raise
-    except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, RuntimeError, OSError, ValueError) as exc:
-        raise RecordingError(f"{path}: a damaged NPZ archive ({' '.join(str(exc).split())})") from exc
+        if head not in (b"PK\x03\x04", b"PK\x05\x06"):
+            raise RecordingError(f"{path}: not an NPZ (zip) archive{' (the file is empty)' if not head else ''}; an "
+                                 f"NPZ recording is written by numpy.savez with the arrays {', '.join(COLUMNS)}")
+        f.seek(0)
+        try:
+            with zipfile.ZipFile(f) as z:
+                names = set(z.namelist())
+                missing = [c for c in COLUMNS if c + ".npy" not in names]
+                if missing:
+                    raise RecordingError(f"{path}: missing array(s) {', '.join(missing)}; an NPZ recording holds "
+                                         f"the arrays {', '.join(COLUMNS)}, one entry per point per frame")
+                a = {c: _npz_array(z, c, path, max_rows) for c in COLUMNS}
+        except RecordingError:
+            raise
+        except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, RuntimeError, OSError, ValueError) as exc:
+            raise RecordingError(f"{path}: a damaged NPZ archive ({' '.join(str(exc).split())})") from exc
     shapes = {c: v.shape for c, v in a.items()}
     if all(v.ndim == 1 for v in a.values()):
         if len({v.size for v in a.values()}) != 1:
@@ -246,16 +247,7 @@ def read_recording(path, max_displacement: float = 1000.0, *, max_line_bytes: in
     Limits, refused with a message naming the keyword that raises them: ``max_line_bytes`` of a CSV
     line, ``max_rows`` data rows (CSV) or entries of an array (NPZ), ``max_frame_points`` frames x
     points."""
-    path = Path(path)
-    try:
-        mode = path.stat().st_mode  # before opening: a FIFO would block, a device never end
-    except (FileNotFoundError, NotADirectoryError):
-        raise RecordingError(f"{path}: no such recording") from None
-    if stat.S_ISDIR(mode):
-        raise RecordingError(f"{path}: is a folder, not a recording; name the .csv or .npz file")
-    if not stat.S_ISREG(mode):
-        raise RecordingError(f"{path}: not a regular file (a device, pipe or socket); a recording is a .csv or "
-                             ".npz file")
+    path = check_regular(path, "recording", error=RecordingError)  # a FIFO would block, a device never end
     if path.suffix.lower() == ".npz":
         table = table_from_npz(path, max_rows)
     elif path.suffix.lower() == ".csv":

@@ -90,6 +90,7 @@ from torchfra.fem.model import Model
 from torchfra.fem.pressure import CavityPressure, FollowerPressure, check_closed
 from torchfra.fem.solid import Hex20Solid
 from torchfra.fem.truss import Truss, two_node_truss
+from torchfra.io.files import read_text
 
 __all__ = ["InpError", "InpIds", "read_inp"]
 
@@ -101,6 +102,7 @@ _BRICKS = {
     "C3D20H": ("hybrid", "full"),
 }
 _TRUSSES = {"T3D3": 3, "T3D2": 2}
+MAX_DECK_BYTES = 1 << 30  # per deck file (the deck and each included file)
 
 _IGNORED = {
     "HEADING", "STEP", "STATIC", "CONTROLS", "NODE PRINT", "NODE FILE", "EL PRINT", "EL FILE", "OUTPUT",
@@ -203,10 +205,8 @@ def _cards(path: Path, cards: list[_Card] | None = None, depth: int = 0) -> list
     cards = [] if cards is None else cards
     if depth > 10:
         raise InpError(f"{path}: *INCLUDE nested more than 10 deep")
-    try:
-        lines = Path(path).read_text().splitlines()
-    except OSError as err:
-        raise InpError(f"cannot read input deck {path}: {err}") from err
+    lines = read_text(path, what="deck" if depth == 0 else "included deck", max_bytes=MAX_DECK_BYTES,
+                      error=InpError).splitlines()
     i = 0
     while i < len(lines):
         number, text = i + 1, lines[i].strip()
