@@ -64,7 +64,7 @@ import torch
 
 from torchfra import fem
 from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
-from torchfra.io.abaqus.write import _dat_blocks, write_inp
+from torchfra.io.abaqus.write import dat_blocks, write_inp
 
 # name: (formulation, integration, cavity pressure, fiber element)
 #   cavity pressure "follower2": FollowerPressure on the cavity faces with 2x2 face points (CalculiX's
@@ -180,7 +180,7 @@ def run_ccx(deck: Path, timeout: float, reuse: dict | None) -> tuple[dict, list]
     sta = parse_sta(deck.with_suffix(".sta"))
     eq = re.search(r"number of equations\s+(\d+)", text)
     dat = deck.with_suffix(".dat")
-    blocks = _dat_blocks(dat) if dat.is_file() else []
+    blocks = dat_blocks(dat) if dat.is_file() else []
     finished = "Job finished" in text and code == 0 and "*ERROR" not in text
     corrections = last_corrections(text)
     return {

@@ -136,7 +136,7 @@ def test_a_load_trace_in_one_calculix_step_matches_each_load_factor(tmp_path):
     does not matter). Reference CalculiX 2.20; without hold increments its linear convergence on the
     follower pressure leaves 2.3e-5 to 1.3e-4 of max |u| (measured; the most after unloading), bound
     5e-4; a neighbouring entry would be off by 20 % or more."""
-    from torchfra.io.abaqus.write import _dat_blocks
+    from torchfra.io.abaqus.write import dat_blocks
 
     model = block()
     model.add(fem.FollowerPressure(model.mesh, "ymin", pressure="P", quadrature=CALCULIX_FACE_RULE))
@@ -148,7 +148,7 @@ def test_a_load_trace_in_one_calculix_step_matches_each_load_factor(tmp_path):
     text = deck.read_text()
     assert "*AMPLITUDE, NAME=TRACE" in text and "*STATIC, DIRECT\n0.05, 1.0" in text
     run_calculix(deck)
-    blocks = dict((round(t, 6), u) for t, u in _dat_blocks(deck.with_suffix(".dat")))
+    blocks = dict((round(t, 6), u) for t, u in dat_blocks(deck.with_suffix(".dat")))
     for k, lam in enumerate(trace):
         u_ccx = np.stack([blocks[round((k + 1) / trace.size, 6)][i] for i in range(model.n_nodes)])
         u_torch = sol.u[0, int(np.searchsorted(np.unique(trace), lam))].numpy()

@@ -8,8 +8,12 @@ the deformation: a dead load, no load stiffness). Units: density rho in t/mm^3 (
 millimetre, so that rho g is in N/mm^3 with g in mm/s^2): silicone rubber ~1.1e-9 t/mm^3
 (1.1 g/cm^3); g = 9.81e3 mm/s^2; W in mJ (N mm). Null: rho = 0.
 
-Like every load term the weight ramps with the load factor (together with the pressure): the
-model's state at load factor 0 is the unloaded reference.
+Reference state. A DIC recording measures displacements from its reference image, taken with the
+body already under its weight. ``preload=True`` (what such a recording needs) makes the weight act
+in full before the load path: :func:`torchfra.fem.newton.solve` settles the body under its weight
+first (``Solution.u_reference``), and the path's load factor then ramps the other loads only, so the
+recording's displacements are ``u - u_reference``. ``preload=False`` (the default of this FE term)
+ramps the weight with the load factor, together with the pressure, from the unloaded body.
 """
 from __future__ import annotations
 
@@ -31,7 +35,8 @@ class Gravity(Morphable, Term):
 
     density: name of the density parameter (t/mm^3); direction: (3,) direction of gravity (normalized
     here); g: acceleration (mm/s^2); elements: element ids (default: all); quadrature: Gauss points
-    per direction (3, the default, integrates ``N_a det J`` exactly on straight-edged bricks).
+    per direction (3, the default, integrates ``N_a det J`` exactly on straight-edged bricks);
+    preload: the weight acts in full before the load path (see the module docstring).
     """
 
     kind = "load"
@@ -43,13 +48,14 @@ class Gravity(Morphable, Term):
     }
 
     def __init__(self, mesh: Mesh, density: str = "density", direction=(0.0, 0.0, -1.0), g: float = STANDARD_GRAVITY,
-                 elements=None, quadrature: int = 3, dtype=torch.float64):
+                 elements=None, quadrature: int = 3, dtype=torch.float64, preload: bool = False):
         d = np.asarray(direction, dtype=np.float64).reshape(-1)
         if d.shape != (3,) or not np.linalg.norm(d) > 0 or not np.all(np.isfinite(d)):
             raise ValueError(f"gravity direction must be a non-zero finite 3-vector, got {direction!r}")
         if not (np.isfinite(g) and g > 0):
             raise ValueError(f"gravitational acceleration g must be positive (mm/s^2), got {g!r}")
         self.density, self.g = density, float(g)
+        self.preload = bool(preload)
         self.direction = d / np.linalg.norm(d)
         self.param_names = (density,)
         self.parameters = {density: Gravity.parameters["density"].renamed(density)}

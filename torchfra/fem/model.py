@@ -1,6 +1,7 @@
 """A finite element model: mesh, energy terms, constraints; evaluated for N members at once."""
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -253,11 +254,46 @@ class Model:
             check_parameters(infos, params, "the model's morph")
         return n.pop()
 
+    # -- reference state ---------------------------------------------------------------------------
+    @property
+    def has_preload(self) -> bool:
+        """True when a load term acts before the load path (``Term.preload``, e.g. the weight in a
+        DIC recording's reference image): :func:`torchfra.fem.newton.solve` settles it first."""
+        return any(t.kind == "load" and getattr(t, "preload", False) for t in self.terms)
+
+    @property
+    def is_settling(self) -> bool:
+        return getattr(self, "_settling", False)
+
+    @contextmanager
+    def settling(self):
+        """Within this context the load factor scales the preloads alone (the other loads and the
+        prescribed displacements are off): the path from the unloaded body to its reference state."""
+        before = self.is_settling
+        self._settling = True
+        try:
+            yield self
+        finally:
+            self._settling = before
+
+    def term_load_factor(self, term: Term, load_factor: torch.Tensor) -> torch.Tensor:
+        """The load factor ``term`` sees at the path's ``load_factor``: a preload acts in full (1) on
+        the load path and ramps while settling; the other loads ramp on the path and are off while settling."""
+        if term.kind != "load":
+            return load_factor
+        if getattr(term, "preload", False):
+            return load_factor if self.is_settling else torch.ones_like(load_factor)
+        return torch.zeros_like(load_factor) if self.is_settling else load_factor
+
+    def prescribed_factor(self, load_factor: torch.Tensor) -> torch.Tensor:
+        """The factor on the prescribed displacements: the load factor, zero while settling."""
+        return torch.zeros_like(load_factor) if self.is_settling else load_factor
+
     # -- evaluation --------------------------------------------------------------------------------
     def displacement(self, a: torch.Tensor, load_factor: torch.Tensor) -> torch.Tensor:
         """a: (N, n_red) -> nodal displacements (N, n_nodes, 3)."""
         a, load_factor = torch.as_tensor(a, dtype=self.dtype), torch.as_tensor(load_factor, dtype=self.dtype)
-        return self.finalize().dofmap.expand(a, load_factor).reshape(a.shape[0], -1, 3)
+        return self.finalize().dofmap.expand(a, self.prescribed_factor(load_factor)).reshape(a.shape[0], -1, 3)
 
     def initial_local(self, N: int) -> list[torch.Tensor | None]:
         """Element-local unknowns of every term at the unloaded state (zeros), (N, B, L) or None."""
@@ -300,7 +336,7 @@ class Model:
         blocks, extra = [], []
         for t, dofs, loc in zip(self.terms, self._dofs, local):
             kw = {"local": loc} if t.n_local else {}
-            out = t.evaluate(u, params, load_factor, tangent=tangent, energy=energy, **kw)
+            out = t.evaluate(u, params, self.term_load_factor(t, load_factor), tangent=tangent, energy=energy, **kw)
             r_t = torch.zeros(N, n, dtype=a.dtype).index_add_(1, dofs, out.fe.reshape(N, -1))
             r_full += r_t
             fe_c = out.fe if out.fe_condensed is None else out.fe_condensed
@@ -338,7 +374,8 @@ class Model:
         r = torch.zeros(N, n, dtype=u.dtype)
         for t, dofs in zip(self.terms, self._dofs):
             if t.kind in kinds:
-                r.index_add_(1, dofs, t.evaluate(u, params, load_factor, tangent=False).fe.reshape(N, -1))
+                r.index_add_(1, dofs, t.evaluate(u, params, self.term_load_factor(t, load_factor),
+                                                 tangent=False).fe.reshape(N, -1))
         return r.reshape(N, -1, 3)
 
     def _reduced_tangents(self, a, r_full, blocks, extra=()) -> list[sp.csr_matrix]:

@@ -16,6 +16,10 @@ Divergence (cut the increment by ``cutback`` and retry from the last converged s
 non-finite residual, an inadmissible state (det F <= 0) after line search, a singular tangent,
 or no convergence within ``max_iterations``.
 
+Reference state: a model with preloads (``Term.preload``: the weight in a DIC recording's reference
+image) is first settled under them alone, member by member, and the load path then starts from that
+state (``Solution.u_reference``), with the preloads held in full.
+
 Cost: all members' tangents share one sparsity pattern, so one :class:`SparseSolver` serves the
 whole solve (PARDISO analyses the pattern once), factorizing symmetric tangents as such; the
 tangent is evaluated together with the residual for iterates that will most likely take a step
@@ -98,6 +102,10 @@ class Solution:
     timings: dict[str, float] = field(default_factory=dict)
     x_last: torch.Tensor | None = None  # (N, size) packed state [a, element pressures] at the last load
     iterations_per_output: np.ndarray | None = None
+    u_reference: torch.Tensor | None = None  # (N, n_nodes, 3) the settled reference state of a model with
+    # preloads (its weight before the load path), from which the path starts; None without preloads
+    a_reference: torch.Tensor | None = None  # (N, n_red) its reduced unknowns
+    x_reference: torch.Tensor | None = None  # (N, size) its packed state
 
     @property
     def converged(self) -> np.ndarray:
@@ -136,11 +144,14 @@ class WarmStart:
     """Continue from equilibrium states: packed states x (N, size) (``Solution.x_last``) reached at
     load factors ``lam0`` (N,), towards ``lam1`` (N,); the solve's load factors then run along
     lam0 + mu (lam1 - lam0), mu in (0, 1]. Parameters may differ from those that made x (the restart
-    filter changes them); the first increment absorbs the change. lam1 < lam0 unloads."""
+    filter changes them); the first increment absorbs the change. lam1 < lam0 unloads. ``predict``:
+    the first increment's predictor is the Euler step ``-K^-1 dr/dlambda`` at x (an equilibrium of
+    these parameters, e.g. the settled reference state) instead of x itself."""
 
     x: torch.Tensor
     lam0: np.ndarray
     lam1: np.ndarray
+    predict: bool = False
 
 
 def solve(
@@ -152,7 +163,46 @@ def solve(
     start: WarmStart | None = None,
 ) -> Solution:
     """Solve ``model`` for every member (params: name -> (N,)) at the given load factors in (0, 1]
-    (fractions of the path from ``start``, when given, else from the unloaded state)."""
+    (fractions of the path from ``start``, when given, else from the reference state: the unloaded
+    body, or for a model with preloads the body settled under them, ``Solution.u_reference``).
+
+    A member whose settling fails is reported diverged (load reached 0, NaN states)."""
+    model.finalize()
+    if start is not None or not model.has_preload or model.is_settling:
+        return _solve_path(model, params, load_factors, options, progress, start)
+    params = {k: torch.as_tensor(v, dtype=model.dtype).reshape(-1) for k, v in params.items()}
+    N = model.validate(params)
+    label = False
+    if progress:
+        label = "settling under the preloads (weight)" if progress is True else f"{progress}: settling"
+    with model.settling():
+        ref = _solve_path(model, params, (1.0,), options, label)
+    settled = torch.as_tensor(ref.converged)
+    x0 = torch.where(settled[:, None], torch.nan_to_num(ref.x_last), torch.zeros_like(ref.x_last))
+    sol = _solve_path(model, params, load_factors, options, progress,
+                      WarmStart(x0, np.zeros(N), np.ones(N), predict=True))
+    if not settled.all():
+        bad = ~settled
+        sol.u[bad], sol.a[bad] = float("nan"), float("nan")
+        if sol.x_last is not None:
+            sol.x_last[bad] = float("nan")
+        sol.status[bad.numpy()] = DIVERGED
+        sol.load_reached[bad.numpy()] = 0.0
+    sol.iterations = sol.iterations + ref.iterations
+    sol.timings = {k: sol.timings.get(k, 0.0) + ref.timings.get(k, 0.0) for k in set(sol.timings) | set(ref.timings)}
+    sol.u_reference, sol.a_reference, sol.x_reference = ref.u[:, 0], ref.a[:, 0], ref.x_last
+    return sol
+
+
+def _solve_path(
+    model: Model,
+    params: dict[str, torch.Tensor],
+    load_factors=(1.0,),
+    options: NewtonOptions | None = None,
+    progress: bool | str = False,
+    start: WarmStart | None = None,
+) -> Solution:
+    """The load path of :func:`solve`, from ``start`` or from the unloaded state."""
     opt = options or NewtonOptions()
     model.finalize()
     dtype = model.dtype
@@ -250,10 +300,16 @@ def solve(
         # Euler predictor for the first increment: dx/dlambda = -K^-1 dr/dlambda at the unloaded state.
         velocity = _euler_velocity(model, pack, params, dtype, opt.linear_solver)
         x = torch.as_tensor(lam, dtype=dtype)[:, None] * velocity
-    else:  # the previous equilibrium is the first predictor
-        velocity = torch.zeros(N, pack.size, dtype=dtype)
+    else:  # the previous equilibrium (or its Euler step) is the first predictor
         x = start.x.to(dtype).clone()
         x_conv, x_prev = x.clone(), x.clone()
+        if start.predict:
+            velocity = _euler_velocity(model, pack, params, dtype, opt.linear_solver, x0=x,
+                                       lam0=torch.as_tensor(lam0, dtype=dtype))
+            velocity = velocity * torch.as_tensor(lam1 - lam0, dtype=dtype)[:, None]
+            x = x + torch.as_tensor(lam, dtype=dtype)[:, None] * velocity
+        else:
+            velocity = torch.zeros(N, pack.size, dtype=dtype)
     # one solver for every member and iteration: the tangents share one sparsity pattern
     linear = SparseSolver(opt.linear_solver, model.symmetric_tangent)
     ls_base, ls_dx = torch.zeros_like(x), torch.zeros_like(x)
@@ -382,12 +438,17 @@ def solve(
                     last_res, history, timings, x_last, per_output)
 
 
-def _euler_velocity(model: Model, pack: _Packing, params, dtype, backend: str, h: float = 1e-6) -> torch.Tensor:
-    """``dx/dlambda`` at the unloaded state for every member (central difference in lambda)."""
+def _euler_velocity(model: Model, pack: _Packing, params, dtype, backend: str, h: float = 1e-6,
+                    x0: torch.Tensor | None = None, lam0: torch.Tensor | None = None) -> torch.Tensor:
+    """``dx/dlambda`` at the unloaded state, or at the equilibria ``x0`` (N, size) reached at load factors
+    ``lam0`` (N,), for every member (central difference in lambda)."""
     N = next(iter(params.values())).shape[0]
-    a0 = torch.zeros(N, model.n_red, dtype=dtype)
-    local0 = model.initial_local(N)
-    lam = torch.zeros(N, dtype=dtype)
+    if x0 is None:
+        a0 = torch.zeros(N, model.n_red, dtype=dtype)
+        local0 = model.initial_local(N)
+    else:
+        a0, local0 = pack.split(x0)
+    lam = torch.zeros(N, dtype=dtype) if lam0 is None else lam0
     ev = model.evaluate(a0, params, lam, tangent=True, local=local0)
     dr = (model.evaluate(a0, params, lam + h, local=local0).rhs - model.evaluate(a0, params, lam - h, local=local0).rhs) / (2 * h)
     v = torch.zeros_like(a0)
@@ -402,7 +463,7 @@ def _euler_velocity(model: Model, pack: _Packing, params, dtype, backend: str, h
     if pack.size == model.n_red:
         return v
     # dp/dlambda = -K_pp^-1 K_pu du/dlambda, du/dlambda including prescribed displacements
-    du = (model.displacement(h * v, lam + h) - model.displacement(a0, lam)) / h
+    du = (model.displacement(a0 + h * v, lam + h) - model.displacement(a0, lam)) / h
     u0 = model.displacement(a0, lam)
     local_v = [None if l is None else t.local_update(u0, params, l, du) for t, l in zip(model.terms, local0)]
     return pack.join(v, local_v)

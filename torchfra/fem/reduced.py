@@ -213,7 +213,7 @@ class HyperReducedModel:
         self.sampled_blocks: list[int] = []
         self.training_error: list[float] = []
         for t in model.terms:
-            fe = t.evaluate(u, params, lam, tangent=False).fe  # (M, B, D)
+            fe = t.evaluate(u, params, model.term_load_factor(t, lam), tangent=False).fe  # (M, B, D)
             dofs = torch.as_tensor(t.dofs)
             G = torch.stack([torch.einsum("bd,bdk->kb", fe[m], W[m][dofs]) for m in range(fe.shape[0])])
             scale = torch.linalg.norm(G.sum(2), dim=1).clamp_min(1e-300)  # every state counts alike
@@ -288,7 +288,7 @@ class HyperReducedModel:
         r_full = torch.zeros(N, n, dtype=a.dtype)
         ok = torch.ones(N, dtype=torch.bool)
         for term, xi, dofs in self.terms:
-            out = term.evaluate(u, params, load_factor, tangent=tangent)
+            out = term.evaluate(u, params, model.term_load_factor(term, load_factor), tangent=tangent)
             ok &= out.ok
             fe = out.fe * xi[None, :, None]
             r_full.index_add_(1, dofs.reshape(-1), fe.reshape(N, -1))
@@ -610,7 +610,9 @@ def solve_ensemble(model: Model, params: dict, load_factors, options=None, snaps
             counts["newton_iterations"] += int(sol.iterations[0])
         timings[phase] += time.perf_counter() - t0
 
-    snap = select_snapshots(params, snapshots)
+    # a model with preloads starts its path from a settled reference state that differs from member to
+    # member; the reduced Newton starts from the unloaded body: every member is solved in full
+    snap = np.arange(N) if model.has_preload else select_snapshots(params, snapshots)
     full(snap, "full")
     # a snapshot that stopped short of full load still brings the load steps it reached (the
     # softest draw of the actuator's prior stops at 95 %: without its states, its neighbours' checks fail)

@@ -63,12 +63,13 @@ def residual_derivative(model: Model, a: torch.Tensor, params: dict[str, torch.T
                else torch.zeros_like(v) for k, v in params.items()}
     dlam = torch.zeros_like(lam) if dload is None else torch.as_tensor(dload, dtype=dtype).expand_as(lam).contiguous()
     u = model.displacement(a, lam)  # the constraint map stays outside the transform (sparse matrices)
-    du = (dlam[:, None] * model.dofmap.u_presc).reshape(u.shape)  # prescribed displacements ramp with lambda
+    # prescribed displacements ramp with lambda (and are off while the model settles its preloads)
+    du = (model.prescribed_factor(dlam)[:, None] * model.dofmap.u_presc).reshape(u.shape)
 
     def full_residual(p, lf, uu):
         r = torch.zeros(N, n, dtype=dtype)
         for t, dofs in zip(model.terms, model._dofs):
-            r = r.index_add(1, dofs, t.evaluate(uu, p, lf, tangent=False).fe.reshape(N, -1))
+            r = r.index_add(1, dofs, t.evaluate(uu, p, model.term_load_factor(t, lf), tangent=False).fe.reshape(N, -1))
         return r
 
     # torch.func.jvp nests with the materials' own vmap/jacfwd kernels (autograd's forward mode does not)
@@ -129,7 +130,8 @@ def sensitivities(model: Model, params_of: Callable[[dict], dict], theta: dict[s
                 t3 = time.perf_counter()
                 J = model.dofmap.jacobian(a)[0]
                 dU = torch.as_tensor(J @ da.numpy(), dtype=dtype)  # (n_full, d + 1)
-                dU[:, -1] += model.dofmap.u_presc  # prescribed displacements ramp with the load factor
+                if not model.is_settling:  # prescribed displacements ramp with the load factor
+                    dU[:, -1] += model.dofmap.u_presc
                 du[m, k] = dU[:, :d].reshape(model.n_nodes, 3, d)
                 du_dlam[m, k] = dU[:, d].reshape(model.n_nodes, 3)
                 timings["tangent"] += t1 - t0

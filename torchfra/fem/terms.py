@@ -42,11 +42,15 @@ class Term:
 
     ``kind`` is ``"internal"`` (stored energy) or ``"load"`` (work of external loads, scaled by the
     load factor). ``conservative`` terms have an energy; follower loads on open surfaces do not.
+    A ``preload`` load acts in full before the load path starts (the body's weight in the reference
+    image of a DIC recording): :func:`torchfra.fem.newton.solve` settles the model under its preloads
+    first, and the path's load factor then scales the other loads only (``Model.term_load_factor``).
     """
 
     kind: str = "internal"
     conservative: bool = True
     n_local: int = 0  # element-local unknowns per block carried by Newton (condensed per block)
+    preload: bool = False  # a load that acts in full before the load path (settled first)
     global_dofs: bool = False  # True: no blocks; fe over every dof, tangents per member (TermOutput.K_global)
     param_names: tuple[str, ...] = ()
     dofs: np.ndarray  # (B, D) global dof indices

@@ -36,7 +36,7 @@ def _calculix_displacements(model, values: dict, lam: np.ndarray, n_nodes: int, 
                             ) -> np.ndarray:
     """CalculiX's displacements (K, n_nodes, 3) of the deck of ``model`` at ``values`` (name -> number)
     through the load factors ``lam`` (K,), one increment each, written and run in ``deck_dir``."""
-    from torchfra.io.abaqus.write import CalculixError, _dat_blocks, run_calculix, write_inp
+    from torchfra.io.abaqus.write import CalculixError, dat_blocks, run_calculix, write_inp
 
     deck_dir.mkdir(parents=True, exist_ok=True)
     # increments of at most CALCULIX_DP MPa: its Newton on the rigid top's MPC and the follower
@@ -51,7 +51,7 @@ def _calculix_displacements(model, values: dict, lam: np.ndarray, n_nodes: int, 
         raise CalculixError(f"CalculiX did not solve the scenario's deck {deck} ({str(exc).splitlines()[0]}); "
                             "choose a lower --pressure (its C3D20R bricks stop near 60 % of 0.022 MPa at "
                             "resolution 2)") from exc
-    blocks = _dat_blocks(deck.with_suffix(".dat"))
+    blocks = dat_blocks(deck.with_suffix(".dat"))
     times = np.array([t for t, _ in blocks])
     K = lam.size
     U = np.full((K, n_nodes, 3), np.nan)

@@ -31,7 +31,9 @@ What each torchfra object becomes (ids are 1-based: node ``i`` -> ``i + 1``, mes
   3x3, which is exact for a Quad8 face. On a coarse, strongly bent mesh the two differ by about
   1e-5 of the displacement. ``SensorCavityPressure`` is written at its true pressure
   ``gain P + offset``.
-- ``Gravity`` -> ``*DENSITY`` and ``*DLOAD ..., GRAV``; ``ElasticSupport`` -> ``SPRING1`` and
+- ``Gravity`` -> ``*DENSITY`` and ``*DLOAD ..., GRAV``; a weight that acts before the load path
+  (``Gravity(preload=True)``) gets its own first ``*STEP`` (the reference state), and the load
+  path's step holds it (a ``*DLOAD`` persists into the next step); ``ElasticSupport`` -> ``SPRING1`` and
   ``SPRING2`` elements that store its discrete energy exactly (see ``abaqus_candidates``).
 - clamped dofs -> ``*BOUNDARY node, dof, dof`` (dof 1, 2, 3 = x, y, z); prescribed dofs ->
   ``*BOUNDARY node, dof, dof, value`` with the value at load factor 1. A clamp wins, as in
@@ -206,12 +208,23 @@ def write_inp(
         points = [f"{_num(k / trace.size)}, {_num(v)}" for k, v in enumerate(np.concatenate([[0.0], trace]))]
         lines += ["*AMPLITUDE, NAME=TRACE"] + [", ".join(points[i:i + 4]) for i in range(0, len(points), 4)]
         amplitude = ", AMPLITUDE=TRACE"
-    lines += [f"*STEP{', NLGEOM' if nlgeom else ''}, INC={10 * (n_inc + hold) + 100}", "*STATIC, DIRECT",
-              f"{_num(dt)}, {_num(period)}"]
     # Iteration limits raised so that no divergence or logarithmic-rate check cuts a DIRECT increment.
     tol = _num(residual_tolerance)
-    lines += ["*CONTROLS, PARAMETERS=TIME INCREMENTATION", "20, 30, 40, 50, 40, 4, , 5",
-              "*CONTROLS, PARAMETERS=FIELD", f"{tol}, {tol}, , , {tol}, 1e-5, {tol}, {_num(1e-3 * residual_tolerance)}"]
+    controls = ["*CONTROLS, PARAMETERS=TIME INCREMENTATION", "20, 30, 40, 50, 40, 4, , 5",
+                "*CONTROLS, PARAMETERS=FIELD", f"{tol}, {tol}, , , {tol}, 1e-5, {tol}, {_num(1e-3 * residual_tolerance)}"]
+    preloads = {bool(getattr(t, "preload", False)) for t in model.terms if isinstance(t, Gravity)}
+    if len(preloads) > 1:
+        raise NotImplementedError("gravity terms that act before the load path and others that ramp with it: "
+                                  "write them as separate models")
+    settle = bool(gravity) and preloads == {True}
+    if settle:  # the weight first, in its own step (the reference state); the next step holds it
+        lines += ["** step 1: the body settles under its weight (the reference state of a DIC recording)",
+                  f"*STEP{', NLGEOM' if nlgeom else ''}, INC={10 * int(increments) + 100}", "*STATIC, DIRECT",
+                  f"{_num(1.0 / int(increments))}, 1.0"] + controls
+        lines += ["*DLOAD"] + gravity + ["*NODE PRINT, NSET=NMODEL", "U", "*END STEP",
+                                         "** step 2: the load path, the weight held"]
+    lines += [f"*STEP{', NLGEOM' if nlgeom else ''}, INC={10 * (n_inc + hold) + 100}", "*STATIC, DIRECT",
+              f"{_num(dt)}, {_num(period)}"] + controls
     clamped = set(model.clamped_dofs.tolist())
     presc = {d: v for d, v in model.prescribed_dofs.items() if d not in clamped}
     if presc:
@@ -220,7 +233,7 @@ def write_inp(
     if loads:
         lines.append(f"*DLOAD{amplitude}")
         lines += [f"{e + 1}, P{f + 1}, {_num(p)}" for (e, f), p in sorted(loads.items())]
-    if gravity:
+    if gravity and not settle:
         lines.append(f"*DLOAD{amplitude}")
         lines += gravity
     lines += ["*NODE PRINT, NSET=NMODEL", "U", "*NODE FILE", "U", "*END STEP"]
@@ -381,7 +394,7 @@ def _fortran_float(text: str) -> float:
         return float(re.sub(r"(?<=\d)([+-]\d+)$", r"E\1", text))
 
 
-def _dat_blocks(path) -> list[tuple[float, dict[int, np.ndarray]]]:
+def dat_blocks(path) -> list[tuple[float, dict[int, np.ndarray]]]:
     """Every displacement block of a CalculiX ``.dat`` file: ``(total time, {node (0-based): u})``."""
     blocks: list[tuple[float, dict[int, np.ndarray]]] = []
     current = None
@@ -407,7 +420,7 @@ def read_dat_displacements(path) -> dict[int, np.ndarray]:
     Returns ``{node index (0-based): (3,) array}`` for the nodes of the last ``*NODE PRINT`` block
     of ``U``. Raises ValueError if the file holds no displacement block.
     """
-    blocks = _dat_blocks(path)
+    blocks = dat_blocks(path)
     if not blocks:
         raise ValueError(
             f"{path} holds no 'displacements (vx,vy,vz)' block; did the deck ask for *NODE PRINT of U?"
@@ -447,7 +460,7 @@ def run_calculix(inp_path, *, executable: str = "ccx", threads: int = 1, timeout
     out = proc.stdout + proc.stderr
     if proc.returncode != 0 or "*ERROR" in out:
         raise CalculixError(f"CalculiX failed on {inp_path} (exit code {proc.returncode}); output tail:\n{_tail(out)}")
-    blocks = _dat_blocks(dat) if dat.is_file() else []
+    blocks = dat_blocks(dat) if dat.is_file() else []
     if not blocks:
         raise CalculixError(f"CalculiX printed no displacements to {dat}; output tail:\n{_tail(out)}")
     time, u = blocks[-1]
