@@ -25,6 +25,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -45,6 +46,7 @@ KINDS = ("lognormal", "normal", "uniform")
 # parameters that act on the frames' load factors, not on the FE solve (the candidate that carries them)
 SENSOR = SENSOR_PARAMETERS
 MAX_PARAMETER_FILE_BYTES = 1 << 20  # a parameter file is a few lines; a bigger one is the wrong file
+_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")  # a parameter name as a file or flag writes it
 TAIL = 4.0  # a normal prior's mean +- TAIL stds (and a lognormal's matching quantiles) must be admissible
 
 
@@ -322,6 +324,39 @@ class ParameterSet:
             raise PriorError(f"{where}: {bad} lie outside their prior's support; choose values inside the prior")
         return Q
 
+    def check_truth(self, truth: dict, where: str = "truth") -> torch.Tensor:
+        """:meth:`values` of a truth (a synthetic recording's values), each also inside its prior's
+        reach: a normal or lognormal prior's mean +- ``TAIL`` stds in its coordinate (the reach its
+        admissible range is checked over), a uniform prior's bounds.
+
+        Parameters
+        ----------
+        truth : dict
+            ``{name: value}`` of uncertain parameters; a missing one takes its null value.
+        where : str
+            Where the values come from, for the messages.
+
+        Returns
+        -------
+        torch.Tensor
+            The coordinates (1, d).
+
+        Raises
+        ------
+        PriorError
+            Naming the parameter, its value and its prior's reach, for a value outside it.
+        """
+        Q = self.values(truth, where)
+        m, s = self.gaussian()
+        for j, p in enumerate(self.priors):
+            if p.kind != "uniform" and p.name in truth and abs(float(Q[0, j] - m[j])) > TAIL * float(s[j]):
+                lo, hi = (float(p.natural(torch.tensor([float(m[j] + k * TAIL * s[j])], dtype=torch.float64))[0])
+                          for k in (-1, 1))
+                raise PriorError(f"{where}: {p.name} = {float(truth[p.name]):g} lies outside its prior "
+                                 f"{p.describe()} (which reaches [{lo:.4g}, {hi:.4g}], mean +- {TAIL:g} stds); "
+                                 "choose a value inside the prior, or widen the prior")
+        return Q
+
     def log_prior(self, Q: torch.Tensor) -> torch.Tensor:
         """log density of the coordinates Q (..., d) under the independent normal priors."""
         m, s = self.gaussian()
@@ -354,21 +389,33 @@ def read_parameter_file(path) -> dict:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise PriorError(f"{path}: not valid TOML ({exc})") from None
+    except RecursionError:  # tomllib parses nested arrays and inline tables recursively
+        raise PriorError(f"{path}: arrays or inline tables nested too deep to read; a parameter file holds the "
+                         "flat tables [parameters], [fixed] and [truth] of strings and numbers") from None
     unknown = sorted(set(data) - {"parameters", "fixed", "truth"})
     if unknown:
         raise PriorError(f"{path}: unknown tables {unknown}; a parameter file has [parameters], [fixed] and [truth]")
-    if not isinstance(data.get("parameters"), dict) or not data["parameters"]:
+    for table, kinds, example in (("parameters", (str,), 'C10 = "lognormal:0.0062,0.0011"'),
+                                  ("fixed", (int, float), "C01 = 0.0"), ("truth", (int, float), "C10 = 0.0048")):
+        entries = data.get(table, {})
+        if not isinstance(entries, dict):
+            raise PriorError(f"{path}: {table} must be a table [{table}] of entries such as {example}")
+        for key, value in entries.items():
+            if not _NAME.fullmatch(key):
+                raise PriorError(f"{path}: [{table}] {key!r} is not a parameter name (letters, digits and _, no "
+                                 f"spaces or quotes); the model's parameters are {_known()}")
+            if not isinstance(value, kinds) or isinstance(value, bool):
+                what = "a prior string" if table == "parameters" else "a number"
+                raise PriorError(f"{path}: [{table}] {key} = {value!r} is not {what}; write e.g. {example}")
+    if not data.get("parameters"):
         raise PriorError(f"{path}: no [parameters] table with priors, e.g. C10 = \"lognormal:0.0062,0.0011\"")
     out = {"parameters": [f"{k}={v}" for k, v in data["parameters"].items()],
            "fixed": [f"{k}={v}" for k, v in data.get("fixed", {}).items()], "truth": {}}
     try:
         pset = ParameterSet.parse(out["parameters"], out["fixed"])
-        for k, v in data.get("truth", {}).items():
-            if not isinstance(v, (int, float)) or isinstance(v, bool):
-                raise PriorError(f"[truth] {k} = {v!r} is not a number")
-            out["truth"][k] = float(v)
+        out["truth"] = {k: float(v) for k, v in data.get("truth", {}).items()}
         if out["truth"]:
-            pset.values(out["truth"], where="[truth]")
+            pset.check_truth(out["truth"], where="[truth]")
     except PriorError as exc:
         raise PriorError(f"{path}: {exc}") from None
     return out
