@@ -14,6 +14,8 @@ so ``n da = -a ds dt`` is the body's outward area element (Nanson: ``J F^-T N dA
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 from torch.func import vmap
@@ -22,6 +24,38 @@ from torchfra.fem.elements import as_tensor, gauss_quad, quad8_shape
 from torchfra.fem.mesh import Mesh
 from torchfra.fem.morph import Morphable
 from torchfra.fem.terms import Term, TermOutput, node_dofs
+
+
+@dataclass(frozen=True)
+class _FaceRule:
+    """The Quad8 Gauss rule of a face and the forms every face shares: N (Q, 8), dN (Q, 8, 2), w (Q,);
+    D (8, 8, 8) with ``int N_a (x_s x x_t) ds dt = sum_bc D_abc (x_b x x_c)``, its alternating part
+    D_alt, and the Levi-Civita symbol eps (3, 3, 3)."""
+
+    N: torch.Tensor
+    dN: torch.Tensor
+    w: torch.Tensor
+    D: torch.Tensor
+    D_alt: torch.Tensor
+    eps: torch.Tensor
+
+    @classmethod
+    def of(cls, quadrature: int, dtype) -> "_FaceRule":
+        pts, wts = gauss_quad(quadrature)
+        N, dN = quad8_shape(pts)
+        N, dN, w = as_tensor(N, dtype), as_tensor(dN, dtype), as_tensor(wts, dtype)
+        # the face force is bilinear in the face's nodes: int N_a (x_s x x_t) = sum_bc D_abc (x_b x x_c),
+        # D_abc = sum_q w N_a dN_b/ds dN_c/dt (the same Gauss rule); the cavity volume is the cubic
+        # 1/3 sum_a x_a . f_a = sum_abc (D_abc / 3) det[x_a, x_b, x_c], of which only the alternating
+        # part of D counts. Residuals and tangents in closed form from these (tested against torch.func)
+        D = torch.einsum("q,qa,qb,qc->abc", w, N, dN[..., 0], dN[..., 1])
+        D_alt = (D + D.permute(1, 2, 0) + D.permute(2, 0, 1) - D.permute(1, 0, 2) - D.permute(0, 2, 1)
+                 - D.permute(2, 1, 0)) / 6.0
+        eps = torch.zeros(3, 3, 3, dtype=dtype)
+        for (i, j, k), sign in (((0, 1, 2), 1), ((1, 2, 0), 1), ((2, 0, 1), 1), ((1, 0, 2), -1), ((0, 2, 1), -1),
+                                ((2, 1, 0), -1)):
+            eps[i, j, k] = sign
+        return cls(N, dN, w, D, D_alt, eps)
 
 
 class _FaceLoad(Morphable, Term):
@@ -37,22 +71,17 @@ class _FaceLoad(Morphable, Term):
         self.face_conn = torch.as_tensor(nodes)
         self.dofs = node_dofs(nodes)
         self.X = as_tensor(mesh.nodes[nodes], dtype)  # (B, 8, 3)
-        pts, wts = gauss_quad(quadrature)
-        N, dN = quad8_shape(pts)
-        self.N, self.dN, self.w = as_tensor(N, dtype), as_tensor(dN, dtype), as_tensor(wts, dtype)
-        # the face force is bilinear in the face's nodes: int N_a (x_s x x_t) = sum_bc D_abc (x_b x x_c),
-        # D_abc = sum_q w N_a dN_b/ds dN_c/dt (the same Gauss rule); the cavity volume is the cubic
-        # 1/3 sum_a x_a . f_a = sum_abc (D_abc / 3) det[x_a, x_b, x_c], of which only the alternating
-        # part of D counts. Residuals and tangents in closed form from these (tested against torch.func)
-        D = torch.einsum("q,qa,qb,qc->abc", self.w, self.N, self.dN[..., 0], self.dN[..., 1])
-        self._D = D
-        self._D_alt = (D + D.permute(1, 2, 0) + D.permute(2, 0, 1) - D.permute(1, 0, 2) - D.permute(0, 2, 1)
-                       - D.permute(2, 1, 0)) / 6.0
-        eps = torch.zeros(3, 3, 3, dtype=dtype)
-        for (i, j, k), sign in (((0, 1, 2), 1), ((1, 2, 0), 1), ((2, 0, 1), 1), ((1, 0, 2), -1), ((0, 2, 1), -1),
-                                ((2, 1, 0), -1)):
-            eps[i, j, k] = sign
-        self._eps = eps
+        self.rule = _FaceRule.of(quadrature, dtype)
+
+    # The face rule is shared by every face: kept in one container (not as array attributes, which a
+    # term restricted to some of its faces would slice wherever their first length equals the number
+    # of faces, e.g. D (8, 8, 8) on a set of 8 faces).
+    N = property(lambda self: self.rule.N)
+    dN = property(lambda self: self.rule.dN)
+    w = property(lambda self: self.rule.w)
+    _D = property(lambda self: self.rule.D)
+    _D_alt = property(lambda self: self.rule.D_alt)
+    _eps = property(lambda self: self.rule.eps)
 
     def _morph_nodes(self):
         return self.face_conn.numpy()
