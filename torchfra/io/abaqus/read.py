@@ -146,6 +146,7 @@ class _Line:
     fields: list[str]
     file: str
     number: int
+    included: bool = False  # from an *INCLUDEd file: its text is never quoted in a message
 
 
 @dataclass
@@ -155,6 +156,7 @@ class _Card:
     file: str
     number: int
     data: list[_Line] = field(default_factory=list)
+    included: bool = False
 
     def error(self, message: str, line: _Line | None = None) -> InpError:
         where = line if line is not None else self
@@ -198,14 +200,29 @@ def _split_keyword(text: str) -> tuple[str, dict[str, str | None]]:
     return keyword, params
 
 
-def _cards(path: Path, cards: list[_Card] | None = None, depth: int = 0) -> list[_Card]:
+def _include_target(card: _Card, path: Path, roots: list[Path]) -> Path:
+    """The file an ``*INCLUDE, INPUT=`` names, resolved (links followed) and confined to ``roots``."""
+    value = card.params["INPUT"]
+    target = Path(value)
+    resolved = (target if target.is_absolute() else path.parent / target).resolve()
+    if not any(resolved.is_relative_to(root) for root in roots):
+        allowed = ", ".join(str(r) for r in roots)
+        raise card.error(f"INPUT={value} is {resolved}, outside the deck's folder ({allowed}); an included file "
+                         "must lie in the deck's folder or below it: move it there, or allow its folder with "
+                         "read_inp(..., include_dirs=[...])")
+    return resolved
+
+
+def _cards(path: Path, roots: list[Path], cards: list[_Card] | None = None, depth: int = 0) -> list[_Card]:
     """Cards of a deck in file order. ``*INCLUDE`` inserts its file's lines in place, as Abaqus does:
     data lines of an included file go on the card before the ``*INCLUDE`` if the file starts with
-    data, and data lines after it go on the included file's last card."""
+    data, and data lines after it go on the included file's last card. Included files must lie under
+    one of ``roots``; their text is never quoted in a message (they may not be decks at all)."""
     cards = [] if cards is None else cards
     if depth > 10:
         raise InpError(f"{path}: *INCLUDE nested more than 10 deep")
-    lines = read_text(path, what="deck" if depth == 0 else "included deck", max_bytes=MAX_DECK_BYTES,
+    included = depth > 0
+    lines = read_text(path, what="included deck" if included else "deck", max_bytes=MAX_DECK_BYTES,
                       error=InpError).splitlines()
     i = 0
     while i < len(lines):
@@ -221,35 +238,42 @@ def _cards(path: Path, cards: list[_Card] | None = None, depth: int = 0) -> list
                     continue
                 text += " " + nxt
             keyword, params = _split_keyword(text)
-            card = _Card(keyword, params, str(path), number)
+            card = _Card(keyword, params, str(path), number, included=included)
             if keyword == "INCLUDE":
                 card.check_params({"INPUT"}, {"INPUT"})
-                target = Path(params["INPUT"])
-                _cards(target if target.is_absolute() else Path(path).parent / target, cards, depth + 1)
+                _cards(_include_target(card, Path(path), roots), roots, cards, depth + 1)
             else:
                 cards.append(card)
             continue
         if not cards:
-            raise InpError(f"{path}, line {number}: data line before the first keyword: {text[:60]!r}")
+            shown = "" if included else f": {text[:60]!r}"
+            raise InpError(f"{path}, line {number}: data line before the first keyword{shown}; a deck starts with "
+                           "a keyword line (*HEADING, *NODE, ...)")
         fields = [f.strip() for f in text.split(",")]
         while fields and not fields[-1]:
             fields.pop()
-        cards[-1].data.append(_Line(fields, str(path), number))
+        cards[-1].data.append(_Line(fields, str(path), number, included))
     return cards
+
+
+def _shown(card: _Card, line: _Line | None, text: str) -> str:
+    """``text`` quoted for a message, unless it comes from an included file (whose text is not shown)."""
+    where = line if line is not None else card
+    return "(text of an included file, not shown)" if where.included else repr(text)
 
 
 def _int(card: _Card, line: _Line | None, text: str, what: str) -> int:
     try:
         return int(text)
     except ValueError:
-        raise card.error(f"{what} must be an integer, got {text!r}", line) from None
+        raise card.error(f"{what} must be an integer, got {_shown(card, line, text)}", line) from None
 
 
 def _float(card: _Card, line: _Line | None, text: str, what: str) -> float:
     try:
         return float(text.replace("d", "e").replace("D", "e"))
     except ValueError:
-        raise card.error(f"{what} must be a number, got {text!r}", line) from None
+        raise card.error(f"{what} must be a number, got {_shown(card, line, text)}", line) from None
 
 
 def _is_int(text: str) -> bool:
@@ -925,7 +949,8 @@ class _Reader:
             model.add(Gravity(mesh, density=name, direction=d, g=g, elements=np.array(elements), dtype=self.dtype))
 
 
-def read_inp(path, *, dtype=torch.float64, pressure_quadrature: int = 3, with_ids: bool = False):
+def read_inp(path, *, dtype=torch.float64, pressure_quadrature: int = 3, with_ids: bool = False,
+             include_dirs=()):
     """Read an Abaqus/CalculiX input deck into a torchfra model (see the module docstring for the cards).
 
     path: the ``.inp`` deck (lengths in mm, moduli and pressures in MPa, densities in t/mm^3,
@@ -934,6 +959,9 @@ def read_inp(path, *, dtype=torch.float64, pressure_quadrature: int = 3, with_id
     pressure_quadrature: Gauss points per direction of the pressure terms' face rule (3: exact for a
         Quad8 face; 2: CalculiX's C3D20R face rule).
     with_ids: also return :class:`InpIds`, the Abaqus id of every model node and mesh element.
+    include_dirs: folders besides the deck's own (and those below them) that ``*INCLUDE, INPUT=`` may
+        read from; an included file anywhere else (an absolute path, ``..`` out of the deck's folder,
+        a link pointing out of it) is refused naming the ``*INCLUDE`` line.
 
     Returns ``(model, params)`` (or ``(model, params, ids)``): an unfinalized :class:`Model` and
     ``{parameter name: float}`` for every parameter of its terms, the deck's values at load factor 1
@@ -944,7 +972,8 @@ def read_inp(path, *, dtype=torch.float64, pressure_quadrature: int = 3, with_id
     """
     path = Path(path)
     reader = _Reader(dtype, pressure_quadrature)
-    for card in _cards(path):
+    roots = [path.parent.resolve()] + [Path(d).resolve() for d in include_dirs]
+    for card in _cards(path, roots):
         reader.read(card)
     model, params, ids = reader.build(path)
     return (model, params, ids) if with_ids else (model, params)
