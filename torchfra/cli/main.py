@@ -23,6 +23,7 @@ SUBCOMMANDS = {
     "forward": ("forward", "a prior ensemble through the FE model (resumable, torchrun)"),
     "diagnose": ("diagnose", "find the physics the model leaves out of a recording"),
     "import-dic": ("import_dic", "a DIC export and its pressure trace as a recording on the model's face"),
+    "virtual-dic": ("virtual_dic", "a virtual DIC experiment: speckle images of the FE actuator correlated by pyvale"),
     "make-recording": ("make_recording", "a synthetic recording of the actuator (or of a deck)"),
     "scenarios": ("scenarios", "the diagnosis's proof suite: recordings with concealed effects, scored"),
     "bench": ("bench", "benchmarks of the FE core, the ensembles and the sensitivities (JSON)"),

@@ -6,6 +6,7 @@
 | ``matchid`` (older) | ``x, y, z, u, v, w``; rows matched by ``x_pic, y_pic`` | none written: the caller's ``units`` | as above |
 | ``vic3d`` | ``"X [mm]"`` .. ``"W [mm]"``, ``"sigma"``; ``,`` or ``;`` separated, preamble rows allowed | in the header | ``sigma`` -1 or empty/NaN |
 | ``dice`` (2-D) | ``SUBSET_ID, COORDINATE_X, COORDINATE_Y, DISPLACEMENT_X, DISPLACEMENT_Y, SIGMA``; ``***`` preamble | pixels: the caller's ``scale`` (mm per pixel) | ``SIGMA`` -1 |
+| ``pyvale`` (2-D) | ``subset_x, subset_y, disp_u, disp_v`` (:mod:`.pyvale`) | pixels: the caller's ``scale`` | NaN displacements |
 | ``generic`` | ``x, y, z, u, v, w`` | the caller's ``units`` (mm or m) | an empty/NaN value |
 
 Other columns (strains, image coordinates, correlation data) are ignored. Coordinates are the
@@ -30,6 +31,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from torchfra.io.dic.pyvale import LAYOUT as PYVALE_LAYOUT
 from torchfra.io.tables import MAX_PREAMBLE, DicError, name_unit, read_lines, split_line
 from torchfra.observation.recording import Recording, from_table, to_table
 
@@ -71,6 +73,7 @@ LAYOUTS = (
     Layout("vic3d", "VIC-3D", dict(x="X", y="Y", z="Z", u="U", v="V", w="W"), sigma="sigma", keys=("x", "y")),
     Layout("dice", "DICe", dict(x="COORDINATE_X", y="COORDINATE_Y", u="DISPLACEMENT_X", v="DISPLACEMENT_Y"),
            sigma="SIGMA", ident="SUBSET_ID", unit="pixel"),
+    Layout(**PYVALE_LAYOUT),
     Layout("generic", "generic point cloud", dict(x="x", y="y", z="z", u="u", v="v", w="w")),
 )
 FORMATS = ("auto",) + tuple(dict.fromkeys(lay.format for lay in LAYOUTS))
