@@ -4,7 +4,11 @@
 float per parameter its terms use, each the value of the deck (a load at load factor 1). Keywords
 and parameters are read case-insensitively, names of sets, surfaces, materials and amplitudes are
 upper-cased as Abaqus does, ``**`` lines are comments, a keyword line ending with a comma goes on on
-the next line, ``*INCLUDE, INPUT=file`` is followed (relative to the including file).
+the next line, ``*INCLUDE, INPUT=file`` is followed (relative to the including file; the file must
+lie in the deck's folder or below it, or under a folder of ``include_dirs``). Every file is read
+through :mod:`torchfra.io.files` (a FIFO, a device, a binary or UTF-16 file is refused naming it).
+Decks in Abaqus/CAE's layout (``*PART`` / ``*ASSEMBLY`` / ``*INSTANCE``, instance-qualified names
+``Part-1-1.Set-1``) are flattened into one mesh (:mod:`torchfra.io.abaqus.assembly`).
 
 What each card becomes:
 
@@ -24,11 +28,15 @@ What each card becomes:
 - ``*NSET`` / ``*ELSET`` (ids, set names, ``GENERATE``; ``*NSET, ELSET=`` for the nodes of element
   sets) -> sets; node sets of mesh nodes become ``mesh.node_sets``.
 - ``*SURFACE, TYPE=ELEMENT`` (``element or elset, S1..S6``) -> ``mesh.face_sets`` (face = S - 1).
+- ``*ORIENTATION`` and ``*SOLID SECTION, ORIENTATION=`` are accepted with a note (:class:`InpNote`,
+  a warning): every material read here is isotropic, so a local frame has no effect.
 - ``*SOLID SECTION, ELSET, MATERIAL`` -> one :class:`Hex20Solid` per section and brick type, with
   ``*HYPERELASTIC, NEO HOOKE`` (or ``REDUCED POLYNOMIAL, N=1``) -> :class:`NeoHookean` (``C10, D1``)
   or ``*HYPERELASTIC, MOONEY-RIVLIN`` (or ``POLYNOMIAL, N=1``) -> :class:`MooneyRivlin`
   (``C10, C01, D1``); one :class:`Truss` per truss section with the section's area (mm^2, its data
-  line) and ``*ELASTIC`` ``E`` (MPa; Poisson's ratio does not enter a truss's force).
+  line) and ``*ELASTIC`` ``E`` (MPa; Poisson's ratio does not enter a truss's force). A material
+  option belongs to the block its ``*MATERIAL`` opens; any other keyword closes the block, so a
+  ``*DENSITY`` after a ``*BOUNDARY`` is an error naming its line.
 - ``*BOUNDARY`` (``node or nset, first dof, last dof, value`` or ``ENCASTRE``, ``PINNED``,
   ``XSYMM``...) -> ``Model.clamp`` for value 0, ``Model.prescribe`` (value at load factor 1)
   otherwise; a later card on the same dof replaces an earlier one (Abaqus ``OP=MOD``). Rotational
@@ -55,7 +63,7 @@ materials, so every body must share them), ``E_fiber`` for the truss modulus (``
 per material when the truss materials differ), ``P`` for the pressure (``P_<SURFACE>`` or ``P_<k>``
 per magnitude when several differ) and ``density`` (``density_<MATERIAL>`` when several differ).
 
-Accepted and ignored (output requests, step controls): ``*HEADING``, ``*STEP``, ``*STATIC``,
+Accepted and ignored (output requests, step controls): ``*HEADING``, ``*PREPRINT``, ``*STEP``, ``*STATIC``,
 ``*CONTROLS``, ``*NODE PRINT``, ``*NODE FILE``, ``*EL PRINT``, ``*EL FILE``, ``*OUTPUT``,
 ``*NODE OUTPUT``, ``*ELEMENT OUTPUT``, ``*END STEP``; one step only, and ``*STEP, NLGEOM=NO``,
 ``*STEP, PERTURBATION`` and ``*STATIC, RIKS`` are errors (torchfra solves finite strain along a
@@ -75,6 +83,7 @@ is not restored: the original parameter names of trusses and pressures, ``Sensor
 from __future__ import annotations
 
 import re
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -90,9 +99,10 @@ from torchfra.fem.model import Model
 from torchfra.fem.pressure import CavityPressure, FollowerPressure, check_closed
 from torchfra.fem.solid import Hex20Solid
 from torchfra.fem.truss import Truss, two_node_truss
+from torchfra.io.abaqus.assembly import Scope, read_cards
 from torchfra.io.files import read_text
 
-__all__ = ["InpError", "InpIds", "read_inp"]
+__all__ = ["InpError", "InpIds", "InpNote", "read_inp"]
 
 # element type -> (Hex20Solid formulation, integration)
 _BRICKS = {
@@ -104,8 +114,9 @@ _BRICKS = {
 _TRUSSES = {"T3D3": 3, "T3D2": 2}
 MAX_DECK_BYTES = 1 << 30  # per deck file (the deck and each included file)
 
+_MATERIAL_OPTIONS = {"HYPERELASTIC", "ELASTIC", "DENSITY"}
 _IGNORED = {
-    "HEADING", "STEP", "STATIC", "CONTROLS", "NODE PRINT", "NODE FILE", "EL PRINT", "EL FILE", "OUTPUT",
+    "HEADING", "PREPRINT", "STEP", "STATIC", "CONTROLS", "NODE PRINT", "NODE FILE", "EL PRINT", "EL FILE", "OUTPUT",
     "NODE OUTPUT", "ELEMENT OUTPUT", "END STEP",
 }
 
@@ -127,6 +138,10 @@ _HYPERELASTIC = {
 
 class InpError(ValueError):
     """A deck the reader cannot turn into a model; the message names the file, the line and the keyword."""
+
+
+class InpNote(UserWarning):
+    """A card read but without effect on the model (e.g. an orientation of an isotropic material)."""
 
 
 @dataclass
@@ -292,6 +307,7 @@ class _Reader:
         self.surfaces: dict[str, list[tuple[int, int, _Card, _Line]]] = {}
         self.materials: dict[str, _Material] = {}
         self.material: _Material | None = None
+        self.material_end: tuple[str, _Card] | None = None  # the open block's material and the card that closed it
         self.sections: list[tuple[str, str, float | None, _Card]] = []
         self.rigid: list[tuple[list[int], int, int | None, _Card]] = []
         self.equations: list[tuple[list[tuple[int, int, float]], _Card, _Line]] = []
@@ -300,27 +316,79 @@ class _Reader:
         self.face_loads: list[tuple[int, int, float, str | None, _Card, _Line]] = []
         self.gravity: list[tuple[list[int], float, tuple[float, ...], str | None, _Card, _Line]] = []
         self.amplitudes: dict[str, _Card] = {}
+        self.orientations: dict[str, _Card] = {}
+        self.oriented: list[tuple[str, str, _Card]] = []  # (material, orientation, section card)
         self.steps = 0
+        self._scope: Scope | None = Scope()  # a flat deck: ids and names as written; None: assembly level
+        self.assembly: Scope | None = None  # the assembly's own ids are numbered past the instances'
+        self.instances: dict[str, Scope] = {}
+
+    # -- parts, instances and qualified names (torchfra.io.abaqus.assembly) ----------------------------
+    @property
+    def scope(self) -> Scope:
+        """The scope of the card being read: an instance's, the assembly's, or a flat deck's."""
+        if self._scope is not None:
+            return self._scope
+        if self.assembly is None:  # fixed at its first use, once the instances before it are defined
+            self.assembly = Scope(None, max(self.nodes, default=0), max(self.elements, default=0))
+        return self.assembly
+
+    def begin_assembly(self) -> None:
+        self._scope = None
+
+    def begin_instance(self, name: str, translation, rotation, axis_point) -> None:
+        self._scope = self.instances[name] = Scope(name, max(self.nodes, default=0), max(self.elements, default=0),
+                                                   rotation, translation, axis_point)
+
+    def end_instance(self) -> None:
+        self._scope = None
+
+    def _in(self, card: _Card) -> Scope:
+        """The scope of a card's ids and names: its own, or that of ``INSTANCE=`` at assembly level."""
+        name = card.name("INSTANCE")
+        if name is None:
+            return self.scope
+        if self.scope.instance is not None or not self.instances:
+            raise card.error("INSTANCE= belongs on a set defined at assembly level")
+        if name not in self.instances:
+            raise card.error(f"instance {name} is not defined (known: {', '.join(sorted(self.instances)) or 'none'})")
+        return self.instances[name]
+
+    def _global(self, card: _Card, text: str, kind: str) -> tuple[int | None, str]:
+        """A reference as written -> (global id, "") for an id, (None, global name) for a name; at
+        assembly level ``I.5`` and ``I.NAME`` are instance I's id 5 and set or surface NAME."""
+        scope = self._in(card)
+        head, dot, rest = text.partition(".")
+        if dot and scope.instance is None and head.upper() in self.instances:
+            scope, text = self.instances[head.upper()], rest
+            if not _is_int(text):
+                return None, scope.qualify(text.upper())
+        if _is_int(text):
+            return (scope.node_offset if kind == "node" else scope.element_offset) + int(text), ""
+        return None, scope.qualify(text.upper())
+
+    def defined_name(self, card: _Card, key: str) -> str | None:
+        """The global name of a set or surface a card defines (an instance's names are qualified)."""
+        name = card.name(key)
+        return None if name is None else self.scope.qualify(name)
 
     # -- references ----------------------------------------------------------------------------------
     def node_refs(self, card: _Card, line: _Line | None, text: str) -> list[int]:
-        if _is_int(text):
-            node = int(text)
+        node, name = self._global(card, text, "node")
+        if node is not None:
             if node not in self.nodes:
-                raise card.error(f"node {node} is not defined", line)
+                raise card.error(f"node {text} is not defined", line)
             return [node]
-        name = text.upper()
         if name not in self.nsets:
             raise card.error(f"node set {name} is not defined (known: {', '.join(sorted(self.nsets)) or 'none'})", line)
         return list(self.nsets[name])
 
     def element_refs(self, card: _Card, line: _Line | None, text: str) -> list[int]:
-        if _is_int(text):
-            element = int(text)
+        element, name = self._global(card, text, "element")
+        if element is not None:
             if element not in self.elements:
-                raise card.error(f"element {element} is not defined", line)
+                raise card.error(f"element {text} is not defined", line)
             return [element]
-        name = text.upper()
         if name not in self.elsets:
             raise card.error(
                 f"element set {name} is not defined (known: {', '.join(sorted(self.elsets)) or 'none'})", line
@@ -354,6 +422,9 @@ class _Reader:
 
     # -- cards ---------------------------------------------------------------------------------------
     def read(self, card: _Card) -> None:
+        if card.keyword not in _MATERIAL_OPTIONS and self.material is not None:
+            self.material_end = (self.material.card.name("NAME"), card)  # any other keyword ends the block
+            self.material = None
         handler = getattr(self, "card_" + card.keyword.replace(" ", "_").replace("-", "_"), None)
         if handler is not None:
             handler(card)
@@ -374,18 +445,20 @@ class _Reader:
 
     def card_NODE(self, card: _Card) -> None:
         card.check_params({"NSET"})
+        scope = self.scope
         ids = []
         for line in card.data:
             if not 3 <= len(line.fields) <= 4:
                 raise card.error("expects 'id, x, y[, z]'", line)
-            node = _int(card, line, line.fields[0], "node id")
+            label = _int(card, line, line.fields[0], "node id")
+            node = scope.node_offset + label
             if node in self.nodes:
-                raise card.error(f"node {node} is defined twice", line)
+                raise card.error(f"node {label} is defined twice", line)
             xyz = [_float(card, line, f or "0", "a coordinate") for f in line.fields[1:]]
-            self.nodes[node] = np.array(xyz + [0.0] * (3 - len(xyz)))
+            self.nodes[node] = scope.place(np.array(xyz + [0.0] * (3 - len(xyz))))
             ids.append(node)
         if card.name("NSET"):
-            self.nsets.setdefault(card.name("NSET"), {}).update(dict.fromkeys(ids))
+            self.nsets.setdefault(self.defined_name(card, "NSET"), {}).update(dict.fromkeys(ids))
 
     def card_ELEMENT(self, card: _Card) -> None:
         card.check_params({"TYPE", "ELSET"}, {"TYPE"})
@@ -403,17 +476,18 @@ class _Reader:
                 continue
             if len(fields) > n + 1:
                 raise card.error(f"a {kind} element has an id and {n} nodes; got {len(fields) - 1} nodes", line)
-            element = _int(card, first, fields[0], "element id")
+            label = _int(card, first, fields[0], "element id")
+            element = self.scope.element_offset + label
             if element in self.elements:
-                raise card.error(f"element {element} is defined twice", first)
-            nodes = tuple(_int(card, first, f, "a node id") for f in fields[1:])
+                raise card.error(f"element {label} is defined twice", first)
+            nodes = tuple(self.scope.node_offset + _int(card, first, f, "a node id") for f in fields[1:])
             self.elements[element] = (kind, nodes, card, first)
             ids.append(element)
             fields, first = [], None
         if fields:
             raise card.error(f"incomplete {kind} element: an id and {n} nodes expected", first)
         if card.name("ELSET"):
-            self.elsets.setdefault(card.name("ELSET"), {}).update(dict.fromkeys(ids))
+            self.elsets.setdefault(self.defined_name(card, "ELSET"), {}).update(dict.fromkeys(ids))
 
     def _set_members(self, card: _Card, refs) -> list[int]:
         members = []
@@ -435,24 +509,25 @@ class _Reader:
         return members
 
     def card_NSET(self, card: _Card) -> None:
-        card.check_params({"NSET", "GENERATE", "ELSET", "UNSORTED", "INTERNAL"}, {"NSET"})
+        card.check_params({"NSET", "GENERATE", "ELSET", "UNSORTED", "INTERNAL", "INSTANCE"}, {"NSET"})
         if "ELSET" in card.params:  # nodes of the elements of element sets (named on the card or the data lines)
             names = [card.params["ELSET"]] if card.params["ELSET"] else [f for ln in card.data for f in ln.fields if f]
             elements = [e for name in names for e in self.element_refs(card, card.data[0] if card.data else None, name)]
             members = [n for e in elements for n in self.elements[e][1]]
         else:
             members = self._set_members(card, self.node_refs)
-        self.nsets.setdefault(card.name("NSET"), {}).update(dict.fromkeys(members))
+        self.nsets.setdefault(self.defined_name(card, "NSET"), {}).update(dict.fromkeys(members))
 
     def card_ELSET(self, card: _Card) -> None:
-        card.check_params({"ELSET", "GENERATE", "UNSORTED", "INTERNAL"}, {"ELSET"})
-        self.elsets.setdefault(card.name("ELSET"), {}).update(dict.fromkeys(self._set_members(card, self.element_refs)))
+        card.check_params({"ELSET", "GENERATE", "UNSORTED", "INTERNAL", "INSTANCE"}, {"ELSET"})
+        members = self._set_members(card, self.element_refs)
+        self.elsets.setdefault(self.defined_name(card, "ELSET"), {}).update(dict.fromkeys(members))
 
     def card_SURFACE(self, card: _Card) -> None:
         card.check_params({"NAME", "TYPE"}, {"NAME"})
         if (card.name("TYPE") or "ELEMENT") != "ELEMENT":
             raise card.error(f"TYPE={card.name('TYPE')} is not supported (only element-based surfaces)")
-        faces = self.surfaces.setdefault(card.name("NAME"), [])
+        faces = self.surfaces.setdefault(self.defined_name(card, "NAME"), [])
         for line in card.data:
             if len(line.fields) != 2 or not re.fullmatch(r"S[1-6]", line.fields[1].upper()):
                 raise card.error("expects 'element or element set, S1..S6'", line)
@@ -460,7 +535,15 @@ class _Reader:
                 faces.append((e, int(line.fields[1][1]) - 1, card, line))
 
     def card_SOLID_SECTION(self, card: _Card) -> None:
-        card.check_params({"ELSET", "MATERIAL"}, {"ELSET", "MATERIAL"})
+        card.check_params({"ELSET", "MATERIAL", "ORIENTATION"}, {"ELSET", "MATERIAL"})
+        orientation = card.name("ORIENTATION")
+        if orientation is not None:
+            if self.scope.qualify(orientation) not in self.orientations:
+                known = ", ".join(sorted(self.orientations)) or "none"
+                raise card.error(f"orientation {orientation} is not defined (known: {known})")
+            # every material this reader builds is isotropic, so a local frame changes nothing
+            warnings.warn(f"{card.file}, line {card.number}: *SOLID SECTION: ORIENTATION={orientation} has no "
+                          f"effect: material {card.name('MATERIAL')} is isotropic", InpNote, stacklevel=2)
         area = None
         if card.data:
             line = card.data[0]
@@ -468,7 +551,12 @@ class _Reader:
                 raise card.error("expects at most one data line with the truss cross-section area", line)
             if line.fields:
                 area = _float(card, line, line.fields[0], "the cross-section area")
-        self.sections.append((card.name("ELSET"), card.name("MATERIAL"), area, card))
+        self.sections.append((self._global(card, card.params["ELSET"], "element")[1] or card.params["ELSET"],
+                              card.name("MATERIAL"), area, card))
+
+    def card_ORIENTATION(self, card: _Card) -> None:
+        card.check_params({"NAME", "SYSTEM", "DEFINITION"}, {"NAME"})
+        self.orientations[self.defined_name(card, "NAME")] = card
 
     def card_MATERIAL(self, card: _Card) -> None:
         card.check_params({"NAME"}, {"NAME"})
@@ -480,7 +568,13 @@ class _Reader:
 
     def _current_material(self, card: _Card) -> _Material:
         if self.material is None:
-            raise card.error("is a material option outside a *MATERIAL block")
+            ended = ""
+            if self.material_end is not None:
+                name, end = self.material_end
+                ended = (f" (the block of material {name} ended at line {end.number} of {end.file} with "
+                         f"*{end.keyword})")
+            raise card.error(f"is a material option outside a *MATERIAL block{ended}; move it into the "
+                             "material's block, right after its *MATERIAL line")
         return self.material
 
     def _one_row(self, card: _Card, n: int, what: str) -> list[float]:
@@ -560,12 +654,24 @@ class _Reader:
         if not sets:
             raise card.error("needs NSET= (node-based rigid body; element-based rigid bodies are not supported)")
         nodes = [n for s in sets for n in self.node_refs(card, None, s)]
-        ref = _int(card, None, card.params["REF NODE"], "REF NODE")
-        rot = _int(card, None, card.params["ROT NODE"], "ROT NODE") if card.params.get("ROT NODE") else None
+        ref, rot = (self._node_param(card, key) for key in ("REF NODE", "ROT NODE"))
         for node in (ref, rot):
             if node is not None and node not in self.nodes:
                 raise card.error(f"node {node} is not defined")
         self.rigid.append((list(dict.fromkeys(nodes)), ref, rot, card))
+
+    def _node_param(self, card: _Card, key: str) -> int | None:
+        """The node a keyword parameter names: an id, ``I.5``, or a node set of one node."""
+        text = card.params.get(key)
+        if not text:
+            return None
+        node, _ = self._global(card, text, "node")
+        if node is not None:
+            return node
+        members = self.node_refs(card, None, text)
+        if len(members) != 1:
+            raise card.error(f"{key}={text}: node set of {len(members)} nodes; it must name one node")
+        return members[0]
 
     def card_EQUATION(self, card: _Card) -> None:
         card.check_params(set())
@@ -600,7 +706,8 @@ class _Reader:
             raise card.error("needs data lines naming the embedded elements or element sets")
         embedded = [e for line in card.data for f in line.fields if f for e in self.element_refs(card, line, f)]
         self.element_refs(card, None, card.params["HOST ELSET"])
-        self.embedded.append((card.name("HOST ELSET"), embedded, card))
+        self.embedded.append((self._global(card, card.params["HOST ELSET"], "element")[1] or card.params["HOST ELSET"],
+                              embedded, card))
 
     def card_DLOAD(self, card: _Card) -> None:
         card.check_params({"AMPLITUDE", "OP"})
@@ -633,7 +740,7 @@ class _Reader:
         for line in card.data:
             if len(line.fields) != 3 or line.fields[1].upper() != "P":
                 raise card.error("expects 'surface, P, magnitude' (only the pressure label P is supported)", line)
-            name = line.fields[0].upper()
+            name = self._global(card, line.fields[0], "element")[1] or line.fields[0].upper()
             if name not in self.surfaces:
                 raise card.error(f"surface {name} is not defined (known: {', '.join(sorted(self.surfaces)) or 'none'})",
                                  line)
@@ -973,7 +1080,6 @@ def read_inp(path, *, dtype=torch.float64, pressure_quadrature: int = 3, with_id
     path = Path(path)
     reader = _Reader(dtype, pressure_quadrature)
     roots = [path.parent.resolve()] + [Path(d).resolve() for d in include_dirs]
-    for card in _cards(path, roots):
-        reader.read(card)
+    read_cards(reader, _cards(path, roots), _float, InpError, path)
     model, params, ids = reader.build(path)
     return (model, params, ids) if with_ids else (model, params)
