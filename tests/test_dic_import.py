@@ -143,12 +143,14 @@ def test_series_by_subset_id_natural_order_and_reference_losses(tmp_path):
     for n, body in rows.items():
         write(tmp_path / f"DICe_solution_{n}.txt", DICE_PREAMBLE + DICE.split(",GAMMA")[0] + "\n" + body)
     write(tmp_path / "notes.txt", "operator: A. N. Other\n")
-    s = read_dic(tmp_path, scale=1.0)
+    with pytest.raises(DicError, match=r"frames 2\.\.10 have a gap: frame\(s\) 4, 5, 6, 7, 8, 9 missing"):
+        read_dic(tmp_path, scale=1.0)
+    s = read_dic(tmp_path, scale=1.0, allow_gaps=True)
     assert s.frames.tolist() == [2, 3, 10] and [f.name for f in s.files][0] == "DICe_solution_2.txt"
     assert s.point_ids.tolist() == [0, 1] and s.lost_in_reference.tolist() == [2]
     assert np.array_equal(s.U[2, :, :2], [[0.2, 0.3], [0.4, 0.5]])  # matched by id, not row
     assert np.all(np.isnan(s.U[1])) and s.unmatched_rows == 2  # id 0 lost, id 1 missing; id 2 not in reference
-    assert [p.name for p in s.ignored] == ["notes.txt"]
+    assert [p.name for p in s.ignored] == ["notes.txt"] and s.ignored_why == ["no DIC export header"]
 
 
 def test_series_matches_missing_rows_by_image_coordinates(tmp_path):
@@ -233,15 +235,22 @@ def face_recording(seed: int = 0):
 
 
 def camera_3d(rng):
+    """A camera frame at a random orientation whose origin (the camera, as in VIC-3D's camera
+    coordinates) lies 100-300 mm in front of the face x = 8: model = R p + t."""
     Q, R = np.linalg.qr(rng.standard_normal((3, 3)))
     Q = Q * np.sign(np.diag(R))
-    return (Q if np.linalg.det(Q) > 0 else -Q), rng.uniform(-300.0, 300.0, 3)
+    return (Q if np.linalg.det(Q) > 0 else -Q), np.array([rng.uniform(100.0, 300.0), *rng.uniform(-300.0, 300.0, 2)])
 
 
-def export_3d(fmt, out, rec, U, lost, rng):
+def export_3d(fmt, out, rec, U, lost, rng, corners=CORNERS, frame=np.eye(3), origin=None):
     """Write the recording as a 3-D export seen by a camera at a random pose (model = R p + t), with one
-    extra speckle 3 mm in front of the face; landmarks: the face corners picked with depth errors."""
+    extra speckle 3 mm in front of the face; landmarks: the face corners picked with depth errors,
+    paired with the model points ``corners`` (the true ones by default). ``frame``: a further change of
+    the camera coordinates (``diag(1, 1, -1)``: a left-handed frame); ``origin``: the model point the
+    frame's origin sits at (default: the camera, 100-300 mm in front of the face)."""
     R, t = camera_3d(rng)
+    t = t if origin is None else np.asarray(origin, dtype=np.float64)
+    R = R @ frame
     X = np.vstack([rec.X, [11.0, 0.5, 31.0]])
     P, Ucam = (X - t) @ R, np.concatenate([U, np.zeros((len(U), 1, 3))], axis=1) @ R
     lost = np.concatenate([lost, np.zeros((len(U), 1), dtype=bool)], axis=1)
@@ -282,7 +291,7 @@ def export_3d(fmt, out, rec, U, lost, rng):
         else:
             write(out / f"cloud-{k:03d}.csv", "x,y,z,u,v,w\n" + "\n".join(rows) + "\n")
     lm = "dic_x,dic_y,dic_z,model_x,model_y,model_z\n" + "".join(
-        ",".join(f"{full(v)}" for v in [*(a * f), *b]) + "\n" for a, b in zip(landmarks, CORNERS))
+        ",".join(f"{full(v)}" for v in [*(a * f), *b]) + "\n" for a, b in zip(landmarks, corners))
     return write(out.parent / "landmarks.csv", lm)
 
 
@@ -429,3 +438,146 @@ def test_diagnose_and_calibrate_take_a_dic_export_directly(tmp_path, monkeypatch
     assert_same(seen["calibrate"], truth)
     with pytest.raises(ValueError, match="give the export with --recording"):
         calibrate_script.main(["--pressure", str(trace), "--runs-dir", str(tmp_path / "runs"), "--workers", "1"])
+
+
+# -- the commands as processes ---------------------------------------------------------------------------
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_command(argv, cwd):
+    """A documented command as a process (``python scripts/...`` or ``torchfra ...``, here as ``python -m
+    torchfra``, the same entry point): (exit code, stdout, stderr)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    argv = [sys.executable, str(ROOT / argv[1])] + argv[2:] if argv[0] == "python" else \
+        [sys.executable, "-m", "torchfra"] + argv[1:]
+    done = subprocess.run(argv, cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
+    return done.returncode, " ".join(done.stdout.split()), done.stderr
+
+
+def vic3d_export(tmp_path, rng=0, **kw):
+    """A VIC-3D export of the face recording in tmp_path/export, its trace (one row per frame) and landmarks."""
+    truth, U, lost = face_recording()
+    landmarks = export_3d("vic3d", tmp_path / "export", truth, U, lost, np.random.default_rng(rng), **kw)
+    trace = write(tmp_path / "trace.csv", "time [s],pressure [kPa]\n" + "".join(
+        f"{full(ti)},{full(1e3 * p)}\n" for ti, p in zip(truth.times, truth.pressure)))
+    return truth, landmarks, trace
+
+
+@pytest.mark.parametrize("command", [["python", "scripts/import_dic.py"], ["torchfra", "import-dic"]])
+def test_import_dic_as_a_process(tmp_path, command):
+    truth, _, _ = vic3d_export(tmp_path)
+    rc, out, err = run_command(command + ["export", "--pressure", "trace.csv", "--landmarks", "landmarks.csv",
+                                          "--out", "rec.csv"], tmp_path)
+    assert rc == 0 and "Traceback" not in err, err
+    assert_same(read_recording(tmp_path / "rec.csv"), truth)
+    assert "Imported 4 frames (0..3) of a VIC-3D export" in out and "confirmed by the response" in out
+    # without landmarks a flat face leaves the in-plane placement open: refused in one paragraph, exit 2
+    rc, out, err = run_command(command + ["export", "--pressure", "trace.csv", "--out", "rec2.csv"], tmp_path)
+    assert rc == 2 and "Traceback" not in err and "3 of the 6 degrees of freedom undetermined" in " ".join(err.split())
+    assert not (tmp_path / "rec2.csv").exists()
+
+
+def import_args(tmp_path, *extra):
+    return [str(tmp_path / "export"), "--pressure", str(tmp_path / "trace.csv"), "--out", str(tmp_path / "rec.csv"),
+            *extra]
+
+
+# -- registration that cannot be fooled ------------------------------------------------------------------
+
+def test_landmarks_on_the_diagonally_opposite_corners_are_refused(tmp_path, capsys):
+    """The face is symmetric under a half turn, so landmarks paired with the opposite corners fit to
+    1e-14 mm with every point at its mirror position; the clamped base decides: the measured
+    displacement vanishes at z = 0 (the test's field grows with z, as the clamped actuator's does)."""
+    vic3d_export(tmp_path, corners=CORNERS[[2, 3, 0, 1]])
+    assert import_dic.main(import_args(tmp_path, "--landmarks", str(tmp_path / "landmarks.csv"))) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert "turned by a half turn about the face normal" in err and "diagonally opposite" in err
+    assert not (tmp_path / "rec.csv").exists()
+
+
+def test_mirrored_landmarks_put_the_camera_behind_the_face_and_are_refused(tmp_path, capsys):
+    vic3d_export(tmp_path, corners=CORNERS[[1, 0, 3, 2]])  # left and right swapped
+    assert import_dic.main(import_args(tmp_path, "--landmarks", str(tmp_path / "landmarks.csv"))) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert "the registered camera is" in err and "behind the face" in err and "landmarks are mirrored" in err
+    assert "--left-handed" in err
+
+
+def test_a_left_handed_camera_frame_registers_correctly(tmp_path, capsys):
+    """Camera coordinates with z turned over: said with --left-handed, the registration is the
+    reflection (det R = -1) and the recording equals the truth; unsaid, the camera lands behind the
+    face and the import is refused, naming --left-handed. A left-handed plane-fitted frame (origin on
+    the face, the camera's place unknown) registers as before, the camera side not checked."""
+    truth, landmarks, _ = vic3d_export(tmp_path, frame=np.diag([1.0, 1.0, -1.0]))
+    assert import_dic.main(import_args(tmp_path, "--landmarks", str(landmarks))) == 2
+    assert "--left-handed" in " ".join(capsys.readouterr().err.split())
+    assert import_dic.main(import_args(tmp_path, "--landmarks", str(landmarks), "--left-handed")) == 0
+    assert_same(read_recording(tmp_path / "rec.csv"), truth)
+    info = __import__("json").loads((tmp_path / "rec.import.json").read_text())
+    assert np.linalg.det(np.asarray(info["R"])) == pytest.approx(-1.0, abs=1e-12) and info["left_handed"]
+    assert "camera registered" in " ".join(capsys.readouterr().out.split())
+    other = tmp_path / "plane_fitted"
+    truth, landmarks, _ = vic3d_export(other, frame=np.diag([1.0, 1.0, -1.0]), origin=(8.0, 0.0, 30.0))
+    assert import_dic.main(import_args(other, "--landmarks", str(landmarks))) == 0
+    assert_same(read_recording(other / "rec.csv"), truth)
+    assert "camera side not checked" in " ".join(capsys.readouterr().out.split())
+
+
+def test_a_cloud_off_the_face_is_refused_not_written_with_one_point(tmp_path, capsys):
+    """Points scattered +-20 mm off any plane: the registration keeps 1 of 136 within 0.5 mm."""
+    rng = np.random.default_rng(3)
+    truth, U, lost = face_recording()
+    X = truth.X + np.outer(rng.uniform(-20.0, 20.0, len(truth.X)), NORMAL)
+    scattered = Recording(truth.frames, truth.times, truth.pressure, truth.point_ids, X, truth.Z, "scattered")
+    landmarks = export_3d("vic3d", tmp_path / "export", scattered, U, lost, rng)
+    write(tmp_path / "trace.csv", "time [s],pressure [kPa]\n0,0\n0.5,7\n1,14\n1.5,22\n")
+    assert import_dic.main(import_args(tmp_path, "--landmarks", str(landmarks))) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert "the registration keeps" in err and "of 136 points" in err and "do not lie on the face" in err
+    assert not (tmp_path / "rec.csv").exists()
+
+
+def test_a_row_written_twice_is_merged_and_a_clash_refused(tmp_path, capsys):
+    truth, landmarks, _ = vic3d_export(tmp_path)
+    for f in sorted((tmp_path / "export").glob("*.csv")):  # the fifth speckle row repeated in every frame
+        lines = f.read_text().splitlines()
+        f.write_text("\n".join(lines + [lines[5]]) + "\n")
+    assert import_dic.main(import_args(tmp_path, "--landmarks", str(landmarks))) == 0
+    assert_same(read_recording(tmp_path / "rec.csv"), truth)
+    assert "1 point(s) written twice merged (kept id, merged id: 4 136)" in " ".join(capsys.readouterr().out.split())
+    last = sorted((tmp_path / "export").glob("*.csv"))[-1]
+    cells = last.read_text().splitlines()
+    row = cells[-1].split(",")
+    row[8] = repr(float(row[8]) + 0.25)  # the copy's U differs in the last frame
+    last.write_text("\n".join(cells[:-1] + [",".join(row)]) + "\n")
+    assert import_dic.main(import_args(tmp_path, "--landmarks", str(landmarks))) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert "lines 6 and 138: points 4 and 136 lie at the same reference position" in err
+
+
+def test_files_that_are_no_frames_are_named_and_a_gap_is_an_error(tmp_path, capsys):
+    import os
+
+    truth, landmarks, _ = vic3d_export(tmp_path)
+    export = tmp_path / "export"
+    os.mkfifo(export / "pipe.csv")
+    (export / "notes.csv").write_bytes("x,y\n".encode("utf-16"))
+    (export / "image.tif").write_bytes(b"II*\x00" + bytes(64))
+    assert import_dic.main(import_args(tmp_path, "--landmarks", str(landmarks))) == 0
+    said = " ".join(capsys.readouterr().out.split())
+    assert "Ignored 3 file(s) of the export folder: image.tif (not a .csv/.txt/.dat file); notes.csv (" in said
+    assert "UTF-16" in said and "pipe.csv (is a FIFO (named pipe)" in said
+    # a frame file that cannot be read (here: binary) leaves a gap: an error naming the file, unless allowed
+    (export / "spec_0002_0.csv").write_bytes(b"\x00\x01binary")
+    assert import_dic.main(import_args(tmp_path, "--landmarks", str(landmarks))) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert "frame(s) 2 missing" in err and "spec_0002_0.csv (" in err and "--allow-gaps" in err
+    write(tmp_path / "trace.csv", "frame,time [s],pressure [kPa]\n" + "".join(
+        f"{k},{full(ti)},{full(1e3 * p)}\n" for k, (ti, p) in enumerate(zip(truth.times, truth.pressure))))
+    assert import_dic.main(import_args(tmp_path, "--landmarks", str(landmarks), "--allow-gaps")) == 0
+    assert read_recording(tmp_path / "rec.csv").frames.tolist() == [0, 1, 3]

@@ -34,6 +34,8 @@ def parse(argv):
     p.add_argument("export", nargs="+", help="directory of per-frame export files, or the files themselves")
     p.add_argument("--out", required=True, help="recording to write (.csv or .npz)")
     add_arguments(p, pressure_required=True)
+    p.add_argument("--camera", choices=("+x", "-x"), default="+x",
+                   help="the side the camera sees the face from (the actuator's front face x = +8 mm: +x)")
     return p.parse_args(argv)
 
 

@@ -65,7 +65,7 @@ class PlaneFace:
 
     flat = True
 
-    def __init__(self, origin, axes, lo, hi):
+    def __init__(self, origin, axes, lo, hi, clamped=None):
         self.origin = np.asarray(origin, dtype=np.float64)
         axes = np.asarray(axes, dtype=np.float64)
         if axes.shape != (2, 3) or abs(axes[0] @ axes[1]) > 1e-12 or not np.allclose(np.linalg.norm(axes, axis=1), 1):
@@ -73,6 +73,29 @@ class PlaneFace:
         self.axes = axes
         self.normal = np.cross(axes[0], axes[1])
         self.lo, self.hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+        # (in-plane axis 0 or 1, its value): the face's edge where the body is held, e.g. the clamped base
+        self.clamped = clamped
+
+    @property
+    def centre(self) -> np.ndarray:
+        return self.origin + 0.5 * (self.lo + self.hi) @ self.axes
+
+    def half_turns(self) -> list[tuple[str, "Similarity"]]:
+        """The rigid motions other than the identity that map the rectangle onto itself and keep its
+        normal: the half turn about the normal through the centre, and the quarter turns of a square."""
+        c, n = self.centre, self.normal
+        turns = [("a half turn about the face normal", _rotation(np.pi * n))]
+        if np.isclose(*(self.hi - self.lo), rtol=1e-9):
+            turns += [("a quarter turn about the face normal", _rotation(0.5 * np.pi * n)),
+                      ("a quarter turn about the face normal", _rotation(-0.5 * np.pi * n))]
+        return [(what, Similarity(R, c - R @ c)) for what, R in turns]
+
+    def distance_to_clamp(self, x: np.ndarray) -> np.ndarray | None:
+        """(P,) mm from the clamped edge, in the face's plane (None: no clamped edge known)."""
+        if self.clamped is None:
+            return None
+        axis, value = self.clamped
+        return np.abs((x - self.origin) @ self.axes[axis] - value)
 
     def closest(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Closest face points (P, 3) of x (P, 3) and the face normal there (P, 3)."""
@@ -86,10 +109,11 @@ class PlaneFace:
 
 
 def front_face(width_x: float = 16.0, width_y: float = 16.0, length: float = 60.0) -> PlaneFace:
-    """The actuator's camera-visible front face x = +w_x/2, y in [-w_y/2, w_y/2], z in [0, L]; the
-    defaults are the paper's actuator (``ActuatorGeometry``'s: x = +8 mm, y in [-8, 8], z in [0, 60])."""
+    """The actuator's camera-visible front face x = +w_x/2, y in [-w_y/2, w_y/2], z in [0, L], clamped
+    at z = 0; the defaults are the paper's actuator (``ActuatorGeometry``'s: x = +8 mm, y in [-8, 8],
+    z in [0, 60])."""
     return PlaneFace((width_x / 2, 0.0, 0.0), ((0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), (-width_y / 2, 0.0),
-                     (width_y / 2, length))
+                     (width_y / 2, length), clamped=(1, 0.0))
 
 
 class TriangleFace:
@@ -236,15 +260,28 @@ def _check_points(points) -> np.ndarray:
 
 # -- ICP -------------------------------------------------------------------------------------------------
 
+_MIRROR = np.diag([1.0, 1.0, -1.0])  # turns a left-handed frame into a right-handed one
+
+
 def register(points, face, *, landmarks=None, point_ids=None, scale: bool = False, method: str | None = None,
-             tol: float = 0.5, max_iter: int = 100) -> Registration:
+             tol: float = 0.5, max_iter: int = 100, left_handed: bool = False) -> Registration:
     """Similarity placing ``points`` (P, 3, camera frame) on ``face``.
 
     landmarks: ``(src (L, 3), dst (L, 3))`` pairs, DIC point -> model point (mm), L >= 3 not on a line:
     the initial guess, and on a flat face the in-plane placement. method: ``"plane"`` (default for
     plane and triangle faces) or ``"point"`` (default for sample faces). tol: farthest a point may lie
-    from the face (mm) to count in the fit; farther ones are listed as outliers.
+    from the face (mm) to count in the fit; farther ones are listed as outliers. left_handed: the
+    camera frame is left-handed, so the transform is a reflection (det R = -1): the frame's z axis
+    is turned over first and a rotation fitted to the rest.
     """
+    if left_handed:
+        mirrored = None if landmarks is None else tuple(np.asarray(v, dtype=np.float64).reshape(-1, 3) for v in landmarks)
+        if mirrored is not None:
+            mirrored = (mirrored[0] @ _MIRROR, mirrored[1])
+        reg = register(_check_points(points) @ _MIRROR, face, landmarks=mirrored, point_ids=point_ids, scale=scale,
+                       method=method, tol=tol, max_iter=max_iter)
+        reg.transform = Similarity(reg.transform.R @ _MIRROR, reg.transform.t, reg.transform.s)
+        return reg
     p = _check_points(points)
     if len(p) < 3:
         raise RegistrationError(f"registration needs at least 3 points, got {len(p)}")
@@ -360,3 +397,126 @@ def _plane_step(T: Similarity, x, q, n, scale, src, dst, nl) -> tuple[Similarity
     Rd = _rotation(dtheta)
     T_new = Similarity(Rd @ T.R, (1 + ds) * Rd @ (T.t - c) + c + dt, (1 + ds) * T.s)
     return T_new, float(np.linalg.norm(delta))
+
+
+# -- orientation checks ----------------------------------------------------------------------------------
+
+@dataclass
+class Orientation:
+    """How a registration's orientation was settled: ``by`` (``"landmarks"``, ``"landmarks and the
+    response"``, ...), the camera side check (``camera_side`` mm, the registered camera's distance in
+    front of the face along ``view``, NaN where it was not checked, and ``camera_note``) and the
+    response's rank correlation with the distance from the clamp (``response_correlation``, NaN where
+    not used); ``text`` says it in a sentence."""
+
+    by: str
+    camera_side: float
+    camera_note: str
+    response_correlation: float
+    text: str
+
+
+MIN_RESPONSE_CORRELATION = 0.5  # rank correlation of |u| with distance from the clamp that decides an orientation
+
+
+def _response_correlation(face, transform: "Similarity", points, displacement) -> float:
+    """Spearman rank correlation, over the points, of each point's largest displacement (any frame)
+    with its distance from the face's clamped edge once placed by ``transform``; NaN if not defined."""
+    from scipy.stats import spearmanr
+
+    if displacement is None or not hasattr(face, "distance_to_clamp"):
+        return float("nan")
+    d = face.distance_to_clamp(transform.points(points))
+    if d is None:
+        return float("nan")
+    with np.errstate(invalid="ignore"):
+        m = np.nanmax(np.linalg.norm(np.asarray(displacement, dtype=np.float64), axis=-1), axis=0)
+    ok = np.isfinite(m)
+    if ok.sum() < 3 or np.ptp(m[ok]) <= 1e-9 * max(np.abs(m[ok]).max(), 1e-300) or np.ptp(d[ok]) == 0:
+        return float("nan")
+    return float(spearmanr(m[ok], d[ok]).statistic)
+
+
+def check_orientation(reg: Registration, points, face, *, camera=None, view=None, displacement=None,
+                      camera_note: str = "") -> Orientation:
+    """Refuse a registration whose orientation the data contradict, and say how it was settled.
+
+    points: (P, 3) the registered points (camera frame); camera: ``("point", (3,))`` the camera's
+    position or ``("direction", (3,))`` the direction from the scene towards it, in the camera frame;
+    None: unknown (not checked, ``camera_note`` says why). view: (3,) model direction from the face
+    towards the camera (``--camera``). displacement: (K, P, 3) of the points (any frame: only their
+    lengths count), the response to pressure.
+
+    Checks: (1) the registered camera lies on the ``view`` side of the face, else the landmarks are
+    mirrored (or the frame's handedness or the camera side was given wrong); (2) on a face with a
+    symmetry (a rectangle turned by half a turn about its normal) whose turned placement fits the
+    points as well, the response decides: a clamped body moves least at its clamp, so the rank
+    correlation of each point's displacement with its distance from the clamp must be positive and
+    larger than for the turned placement. A response that prefers the turned placement is refused (the
+    landmarks are paired with the wrong corners); one that cannot tell (no clamp known, no motion) leaves
+    the landmarks alone to decide, said so.
+    """
+    p = _check_points(points)
+    T = reg.transform
+    side, note = float("nan"), camera_note
+    if camera is not None and view is not None:
+        kind, v = camera
+        view = np.asarray(view, dtype=np.float64) / np.linalg.norm(view)
+        if hasattr(face, "centre"):
+            centre = face.centre
+        else:
+            pts, w = face.samples()
+            centre = np.average(pts, axis=0, weights=w)
+        if kind == "point":
+            side = float((T.points(np.asarray(v, dtype=np.float64)) - centre) @ view)
+        else:
+            d = T.vectors(np.asarray(v, dtype=np.float64))
+            side = float(d @ view / np.linalg.norm(d))
+        if not side > 0:
+            where = f"{-side:.4g} mm behind the face" if kind == "point" else "looking at the face from behind"
+            raise RegistrationError(
+                f"the registered camera is {where} (the face is seen from {_signed_axis(view)}): a rotation puts "
+                "the camera there only if the landmarks are mirrored (left and right, or top and bottom, swapped): "
+                "check the landmark pairs; if they are right, the export's frame is left-handed (give "
+                "--left-handed), the camera sees the other face (--camera), or the camera is elsewhere in the "
+                "DIC frame (--dic-camera)")
+        note = (f"the camera registered {side:.4g} mm in front of the face" if kind == "point" else
+                "the camera registered in front of the face")
+    turns = face.half_turns() if hasattr(face, "half_turns") else []
+    rival = None
+    for what, S in turns:
+        alt = evaluate(p, face, Similarity(S.R @ T.R, S.R @ T.t + S.t, T.s), reg.tol, reg.point_ids)
+        if alt.inlier.sum() >= reg.inlier.sum() and alt.rms <= reg.rms + 0.1 * reg.tol:
+            rival = (what, alt)
+            break
+    rho = _response_correlation(face, T, p, displacement)
+    if rival is None:
+        by = "the fit (no other placement fits the points as well)"
+        if reg.landmark_error.size:
+            by = "the landmarks (no other placement fits the points as well)"
+        return Orientation(by, side, note, rho, f"orientation: {by}; {note or 'camera side not checked'}")
+    what, alt = rival
+    rho_alt = _response_correlation(face, alt.transform, p, displacement)
+    if np.isfinite(rho) and np.isfinite(rho_alt) and rho_alt > rho and rho_alt >= MIN_RESPONSE_CORRELATION:
+        raise RegistrationError(
+            f"the points fit the face equally well turned by {what}, and the response to pressure chooses the turned "
+            f"placement: the displacement grows away from the clamped edge there (rank correlation {rho_alt:.2f}) "
+            f"but towards it as the landmarks place the points ({rho:.2f}); the landmarks are paired with the wrong "
+            "corners (diagonally opposite ones?): check their pairs")
+    if np.isfinite(rho) and rho >= MIN_RESPONSE_CORRELATION and rho > rho_alt:
+        by = "the landmarks, confirmed by the response"
+        detail = (f"the face fits as well turned by {what}; the displacement grows away from the clamped edge "
+                  f"(rank correlation {rho:.2f}, turned {rho_alt:.2f})")
+    elif reg.landmark_error.size:
+        by = "the landmarks alone"
+        detail = (f"the face fits as well turned by {what} and the response cannot tell (rank correlation "
+                  f"{rho:.2f}, turned {rho_alt:.2f}): the landmarks' pairs decide")
+    else:
+        raise RegistrationError(f"the points fit the face equally well turned by {what} and neither landmarks nor "
+                                "the response tell the two apart; give landmarks")
+    return Orientation(by, side, note, rho, f"orientation: {by} ({detail}); {note or 'camera side not checked'}")
+
+
+def _signed_axis(v: np.ndarray) -> str:
+    i = int(np.argmax(np.abs(v)))
+    return f"{'+' if v[i] > 0 else '-'}{'xyz'[i]}" if np.isclose(abs(v[i]), 1.0) else f"direction {v.round(3).tolist()}"

@@ -239,7 +239,9 @@ def read_frame(path, fmt: str = "auto", *, scale=None, units=None) -> DicFrame:
 @dataclass
 class DicSeries:
     """K frames x P points: frames (K,) numbers, files (K,), point_ids (P,), X (P, 3) mm reference
-    positions (camera frame), U (K, P, 3) mm displacements with NaN where lost."""
+    positions (camera frame), U (K, P, 3) mm displacements with NaN where lost; ``ignored`` the
+    entries of the export folder that are not frames and ``ignored_why`` why; ``merged_duplicates``
+    (kept id, merged id) of points written twice."""
 
     layout: Layout
     files: list
@@ -252,6 +254,8 @@ class DicSeries:
     lost_in_reference: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     unmatched_rows: int = 0
     ignored: list = field(default_factory=list)
+    ignored_why: list = field(default_factory=list)
+    merged_duplicates: list = field(default_factory=list)
 
     @property
     def two_d(self) -> bool:
@@ -278,9 +282,20 @@ def frame_numbers(names: list[str]) -> tuple[list[int], bool]:
     return [rank[i] for i in range(len(names))], False
 
 
-def export_files(source, fmt: str = "auto", exclude=()) -> tuple[list[Path], list[Path]]:
+def _why_not_a_frame(path: Path, layouts) -> str | None:
+    """Why a file of an export folder is not a frame of it (None: it is one)."""
+    try:
+        head = read_lines(path, MAX_PREAMBLE)
+    except DicError as exc:  # not a regular file, binary, UTF-16, too big: the reading layer says which
+        return str(exc).removeprefix(f"{path}: ").split(";")[0]
+    return None if find_header(head, layouts) is not None else "no DIC export header"
+
+
+def export_files(source, fmt: str = "auto", exclude=()) -> tuple[list[Path], list[Path], list[str]]:
     """The frame files of ``source`` (a directory, a file, or a list of files) and, for a directory,
-    the files skipped because no supported header was found in them."""
+    the entries skipped (every one but the frames and ``exclude``) with why each was skipped: no
+    supported header, not a .csv/.txt/.dat file, or not readable as text (a FIFO, a device, a binary or
+    UTF-16 file, ...)."""
     layouts = _layouts(fmt)
     sources = [Path(s) for s in ([source] if isinstance(source, (str, Path)) else source)]
     if not sources:
@@ -288,27 +303,43 @@ def export_files(source, fmt: str = "auto", exclude=()) -> tuple[list[Path], lis
     skip = {Path(e).resolve() for e in exclude}
     if len(sources) == 1 and sources[0].is_dir():
         d = sources[0]
-        candidates = sorted((p for p in d.iterdir() if p.is_file() and p.suffix.lower() in SUFFIXES
-                             and p.resolve() not in skip), key=lambda p: natural_key(p.name))
-        files = [p for p in candidates if find_header(read_lines(p, MAX_PREAMBLE), layouts) is not None]
+        entries = sorted((p for p in d.iterdir() if p.resolve() not in skip), key=lambda p: natural_key(p.name))
+        files, ignored, why = [], [], []
+        for p in entries:
+            reason = (_why_not_a_frame(p, layouts) if p.suffix.lower() in SUFFIXES
+                      else "a folder" if p.is_dir() else f"not a {'/'.join(SUFFIXES)} file")
+            if reason is None:
+                files.append(p)
+            else:
+                ignored.append(p)
+                why.append(reason)
         if not files:
-            seen = header_guess(read_lines(candidates[0], MAX_PREAMBLE)) if candidates else []
+            candidates = [p for p in entries if p.suffix.lower() in SUFFIXES and p.is_file()]
+            seen = []
+            if candidates:
+                try:
+                    seen = header_guess(read_lines(candidates[0], MAX_PREAMBLE))
+                except DicError:
+                    seen = []
             raise DicError(f"{d}: no {'DIC export' if fmt == 'auto' else fmt + ' export'} among its "
                            f"{len(candidates)} .csv/.txt/.dat files"
                            + (f"; columns found: {', '.join(seen)} (in {candidates[0].name})" if seen else "")
                            + f". Expected one of: {expected_columns(layouts)}")
-        return files, [p for p in candidates if p not in files]
-    missing = [str(p) for p in sources if not p.is_file()]
+        return files, ignored, why
+    missing = [str(p) for p in sources if not p.exists()]
     if missing:
         raise DicError(f"no such export file or directory: {', '.join(missing)}")
-    return sources, []
+    return sources, [], []
 
 
-def read_dic(source, fmt: str = "auto", *, scale=None, units=None, exclude=()) -> DicSeries:
+def read_dic(source, fmt: str = "auto", *, scale=None, units=None, exclude=(), allow_gaps: bool = False) -> DicSeries:
     """Read a DIC export: a directory of per-frame files, one file, or a list of files (see the
     module docstring). ``scale``: mm per pixel (pixel exports); ``units``: mm or m for exports whose
-    headers give none; ``exclude``: files of the directory that are not frames (the pressure trace)."""
-    files, ignored = export_files(source, fmt, exclude)
+    headers give none; ``exclude``: files of the directory that are not frames (the pressure trace).
+    Frame numbers taken from the file names must run without a gap (a frame file lost or unreadable)
+    unless ``allow_gaps``; reference points at the same position are merged when they carry the same
+    data in every frame (a row written twice), and refused otherwise."""
+    files, ignored, why = export_files(source, fmt, exclude)
     frames = [read_frame(p, fmt, scale=scale, units=units) for p in files]
     labels = {f.layout.label for f in frames}
     if len(labels) > 1:
@@ -324,6 +355,15 @@ def read_dic(source, fmt: str = "auto", *, scale=None, units=None, exclude=()) -
         k = int(dup[0])
         raise DicError(f"{frames[k].path.name} and {frames[k + 1].path.name} are both frame {numbers[k]}; "
                        "keep one export per frame")
+    gaps = np.flatnonzero(np.diff(numbers) > 1)
+    if from_names and gaps.size and not allow_gaps:
+        missing = [int(n) for g in gaps for n in range(numbers[g] + 1, numbers[g + 1])]
+        shown = ", ".join(map(str, missing[:10])) + (f" and {len(missing) - 10} more" if len(missing) > 10 else "")
+        skipped = "; ".join(f"{p.name} ({w})" for p, w in zip(ignored, why) if w != "no DIC export header")
+        raise DicError(f"the export's frames {numbers[0]}..{numbers[-1]} have a gap: frame(s) {shown} missing"
+                       + (f" (skipped: {skipped})" if skipped else "")
+                       + "; restore the missing files, or allow the gap (allow_gaps, --allow-gaps) if the export "
+                       "skips frames on purpose")
     ref = frames[0]
     ids = ref.ids if ref.ids is not None else np.arange(len(ref.X))
     keep = ~ref.lost
@@ -337,8 +377,32 @@ def read_dic(source, fmt: str = "auto", *, scale=None, units=None, exclude=()) -
         rows, target = _match_rows(ref, fr, keep)
         U[k, target] = fr.U[rows]
         unmatched += len(fr.X) - len(rows)
-    return DicSeries(ref.layout, [f.path for f in frames], numbers, ids[keep], ref.X[keep], U, ref.factor,
-                     from_names, ids[~keep], unmatched, ignored)
+    X, point_ids = ref.X[keep], ids[keep]
+    unique, merged = _merge_duplicates(ref, keep, X, U, point_ids)
+    return DicSeries(ref.layout, [f.path for f in frames], numbers, point_ids[unique], X[unique], U[:, unique],
+                     ref.factor, from_names, ids[~keep], unmatched, ignored, why, merged)
+
+
+def _merge_duplicates(ref: DicFrame, keep: np.ndarray, X: np.ndarray, U: np.ndarray, ids: np.ndarray):
+    """Indices of the points to keep and the (kept id, merged id) pairs of points written twice: the
+    same reference position (to 1e-9 mm) and the same displacements in every frame. Two points at one
+    position with different data are refused (which one is the point?)."""
+    _, first, inverse = np.unique(np.round(X, 9), axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    if first.size == len(X):
+        return np.arange(len(X)), []
+    lines = ref.lines[keep]
+    merged, drop = [], np.zeros(len(X), dtype=bool)
+    for i in np.flatnonzero(first[inverse] != np.arange(len(X))):
+        j = first[inverse[i]]
+        if not np.array_equal(U[:, i], U[:, j], equal_nan=True):
+            k = int(np.flatnonzero((~np.isclose(U[:, i], U[:, j], rtol=0, atol=0, equal_nan=True)).any(axis=1))[0])
+            raise DicError(f"{ref.path}, lines {lines[j]} and {lines[i]}: points {ids[j]} and {ids[i]} lie at the same "
+                           f"reference position {X[i].round(6).tolist()} but differ in frame index {k}; a point must be "
+                           "exported once: remove the duplicate rows (or the duplicated subset) from the export")
+        merged.append((int(ids[j]), int(ids[i])))
+        drop[i] = True
+    return np.flatnonzero(~drop), merged
 
 
 def _match_rows(ref: DicFrame, fr: DicFrame, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
