@@ -106,7 +106,7 @@ def test_calibration_of_a_deck_from_its_recording(deck, tmp_path):
     assert summary["config"]["inp"] == str(deck)
     cache = list((tmp_path / "runs" / "forward_cache").iterdir())
     assert len(cache) == 1 and cache[0].name.startswith("deck")
-    with pytest.raises(ValueError, match="drop --forward-pressure"):
+    with pytest.raises(ValueError, match="drop --peak-pressure"):
         calibrate.main(["--inp", str(deck), "--param", PRIOR, "--recording", str(rec), "--forward-pressure", "0.002"])
 
 

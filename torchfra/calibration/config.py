@@ -84,6 +84,7 @@ class CalibrationConfig:
     grid: int = 4000
     pressure: float = 0.022  # MPa at t = 1 of the synthetic recording; the forward ensemble's range
     load_steps: int = 20
+    method: str = "reduced"  # how the forward ensemble's members are solved (ForwardConfig.method)
     # any parameter set (torchfra.calibration.priors): prior specs "NAME=KIND:A,B" and fixed "NAME=VALUE" (empty:
     # the paper's prior of C10); ``truth``: values of the synthetic recording's uncertain parameters
     # other than C10 (``truth_c10``), a missing one at its null value

@@ -415,7 +415,7 @@ def forward_dir(config: CalibrationConfig, runs_dir) -> Path:
 def forward_config(config: CalibrationConfig) -> ForwardConfig:
     """The forward ensemble's settings (a deck read: its digest and pressure, see ``with_deck``)."""
     return with_deck(ForwardConfig(members=config.members, resolution=config.resolution, seed=config.seed,
-                                   pressure=config.pressure, load_steps=config.load_steps,
+                                   pressure=config.pressure, load_steps=config.load_steps, method=config.method,
                                    parameters=list(config.parameters), fixed=list(config.fixed),
                                    inp=config.inp, camera=config.camera, face=config.face))
 

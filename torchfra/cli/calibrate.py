@@ -14,7 +14,8 @@ writes runs/<name>/: summary.json, bands.png, pdfs.png (pairs.png for several pa
 cached in runs/forward_cache/<settings>/ (shared by runs with the same prior, mesh and load) and the restart filter checkpoints after every step, so a killed
 run resumes without redoing finished FE work.
 """
-import argparse
+from __future__ import annotations
+
 import json
 import os
 import signal
@@ -25,24 +26,19 @@ from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
-import torch
-
-from torchfra.calibration.config import (
-    SEED,
-    CalibrationConfig,
-    ForwardConfig,
+from torchfra.cli.flags import (
+    PEAK_PRESSURE,
+    add_method,
+    add_peak_pressure,
+    add_resolution,
+    add_run_folder,
+    add_threads,
+    parser,
 )
-from torchfra.calibration.experiment import run_calibration
-from torchfra.calibration.forward import forward_config, forward_dir, observed_surface, run_forward
-from torchfra.calibration.frames import validate_recording
-from torchfra.calibration.priors import ParameterSet, parse_truth, read_parameter_file
-from torchfra.calibration.restart import RestartRanks, serve_restart
 from torchfra.cli.run import add_deck_flags, check_deck_flags
-from torchfra.io.dic.importer import add_arguments, recording_path
-from torchfra.report.calibration import write_calibration_outputs
-from torchfra.runtime.distributed import finish, ranks
+from torchfra.io.dic.importer import add_arguments
 
-CONFIGS = {"seed": SEED}
+CONFIGS = ("seed",)  # named configs: torchfra.calibration.config.SEED
 
 
 def _free_port() -> int:
@@ -63,6 +59,10 @@ def forward_ranks(config: CalibrationConfig, run_dir: Path, n: int, argv: list[s
     started when the ensemble is on disk and the restart filter is off). On the way out the stop is
     sent, the group left, the environment restored, and ranks still running when the work did not
     finish are stopped."""
+    from torchfra.calibration.forward import forward_config, forward_dir
+    from torchfra.calibration.restart import RestartRanks
+    from torchfra.runtime.distributed import finish, ranks
+
     fwd, where = forward_config(config), forward_dir(config, run_dir.parent)
     per_file = 1 if fwd.method == "reduced" else fwd.chunk
 
@@ -106,9 +106,12 @@ def forward_ranks(config: CalibrationConfig, run_dir: Path, n: int, argv: list[s
 def _base_config(a) -> tuple[CalibrationConfig, dict]:
     """The named config or the TOML file's, and the parameter set given by flags or file (empty: the
     config's own, the paper's C10 prior)."""
+    from torchfra.calibration.config import SEED
+    from torchfra.calibration.priors import ParameterSet, read_parameter_file
+
     prior: dict = {}
     if a.config in CONFIGS:
-        base = CONFIGS[a.config]
+        base = SEED
     elif a.config.endswith(".toml"):
         base = SEED
         prior = read_parameter_file(a.config)
@@ -125,8 +128,9 @@ def _base_config(a) -> tuple[CalibrationConfig, dict]:
     return base, prior
 
 
-def main(argv=None) -> dict:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def build_parser():
+    """The flags of ``torchfra calibrate`` (no torch imported)."""
+    p = parser(__doc__)
     p.add_argument("--config", default="seed",
                    help="named settings to start from (seed: the paper's experiment), or a TOML file of priors "
                         "([parameters], optional [fixed] and [truth] tables; see torchfra.calibration.priors)")
@@ -135,44 +139,89 @@ def main(argv=None) -> dict:
                         "normal:MEAN,STD or uniform:LOW,HIGH (repeat for several; default the config's C10 prior)")
     p.add_argument("--fixed", action="append", default=None, metavar="NAME=VALUE",
                    help="a parameter held at a value (repeatable), e.g. E_fiber=31000")
-    p.add_argument("--name", default=None, help="run name: outputs go to <runs-dir>/<name>/ (default: the config)")
-    p.add_argument("--runs-dir", default="runs")
+    add_run_folder(p, None, "outputs (default: the --config name, seed)")
     p.add_argument("--recording", default=None,
-                   help="CSV/NPZ recording (default: synthetic at --truth), or with --pressure a DIC export "
-                        "(a folder of per-frame files or one file), converted into runs/<name>/recording.csv")
+                   help="CSV/NPZ recording (default: a synthetic one at --c10/--truth), or with --pressure a DIC "
+                        "export (a folder of per-frame files or one file), converted into runs/<name>/recording.csv")
+    p.add_argument("--c10", type=float, default=None, metavar="MPA",
+                   help="C10 of the synthetic recording (the truth; default the config's, 0.0048 for seed)")
     p.add_argument("--truth", action="append", default=None, metavar="[NAME=]VALUE",
-                   help="value of the synthetic recording: a number for C10 (MPa), or NAME=VALUE per uncertain "
-                        "parameter (repeatable; a parameter not given takes its null value)")
-    p.add_argument("--noise", type=float, default=None, help="observation noise std (mm)")
-    p.add_argument("--members", type=int, default=None, help="ensemble size N_s")
-    p.add_argument("--mesh", type=int, default=None, help="mesh resolution of the FE model")
-    p.add_argument("--forward-pressure", type=float, default=None,
-                   help="largest pressure of the forward ensemble (MPa; default the config's, 0.022)")
-    p.add_argument("--assimilate-every", type=int, default=None,
+                   help="values of the synthetic recording: a number for C10 (MPa, as --c10), or NAME=VALUE per "
+                        "uncertain parameter (repeatable; a parameter not given takes its null value)")
+    p.add_argument("--noise", type=float, default=None, metavar="MM",
+                   help="observation noise std (mm); default: 1.0 for a synthetic recording, for a recording file "
+                        "estimated from its frames as the diagnosis does (printed and in summary.json noise)")
+    p.add_argument("--members", type=int, default=None, help="ensemble size N_s (default the config's, 100 for seed)")
+    add_resolution(p)
+    add_peak_pressure(p, None, "largest pressure of the forward ensemble (MPa; default the config's, "
+                      f"{PEAK_PRESSURE} for seed; with --inp the deck's); a recording's frames must lie below it",
+                      old=("--forward-pressure",))
+    add_method(p)
+    p.add_argument("--assimilate-every", type=int, default=None, metavar="N",
                    help="the hierarchical filters assimilate every n-th frame (default 1, the paper's); fewer "
                         "updates keep their spread along a weakly constrained direction of several parameters")
     p.add_argument("--no-restart", action="store_true", help="skip the restart filter (the FE-costly baseline)")
-    p.add_argument("--restart-every", type=int, default=None, help="restart filter assimilates every n-th frame")
-    p.add_argument("--coverage-seeds", type=int, default=None, help="noise re-draws for the coverage study")
-    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (recorded)")
+    p.add_argument("--restart-every", type=int, default=None, metavar="N",
+                   help="the restart filter assimilates every n-th frame (default the config's, 10 for seed)")
+    p.add_argument("--coverage-seeds", type=int, default=None, metavar="N",
+                   help="noise re-draws for the coverage study of a synthetic recording (default the config's, 20 "
+                        "for seed; 0: none)")
+    add_threads(p)
     p.add_argument("--workers", type=int, default=2,
                    help="processes sharing the forward ensemble and the restart filter's FE re-solves through "
                         "torch.distributed (one per core; this one is rank 0)")
     add_arguments(p)
     add_deck_flags(p)
+    return p
+
+
+def _looks_like_a_number(text) -> bool:
+    try:
+        float(text)
+    except (TypeError, ValueError):
+        return False
+    return True
+
+
+def main(argv=None) -> dict | int:
+    p = build_parser()
     raw_argv = list(sys.argv[1:] if argv is None else argv)
     a = p.parse_args(argv)
-    check_deck_flags(a, "forward_pressure")
+    if a.pressure is not None and _looks_like_a_number(a.pressure) and not Path(a.pressure).exists():
+        raise ValueError(f"--pressure {a.pressure}: --pressure names a pressure-trace CSV of a DIC export; "
+                         f"{a.pressure} is a peak pressure: give it as --peak-pressure {a.pressure} (MPa)")
+    check_deck_flags(a, "peak_pressure")
+    if a.c10 is not None:
+        if any(t.split("=")[0].strip().upper() == "C10" or "=" not in t for t in a.truth or []):
+            raise ValueError("give the truth of C10 once: --c10 or --truth C10=..., not both")
+        a.truth = [*(a.truth or []), f"C10={a.c10!r}"]
+
+    import torch
+
+    from torchfra.calibration.config import CalibrationConfig, ForwardConfig
+    from torchfra.calibration.experiment import run_calibration
+    from torchfra.calibration.forward import forward_config, forward_dir, observed_surface, run_forward
+    from torchfra.calibration.frames import validate_recording
+    from torchfra.calibration.priors import parse_truth
+    from torchfra.calibration.restart import RestartRanks, serve_restart
+    from torchfra.cli.flags import resolve_method
+    from torchfra.io.dic.importer import recording_path
+    from torchfra.report.calibration import write_calibration_outputs
+    from torchfra.runtime.distributed import finish, ranks
+
     torch.set_num_threads(a.threads)
     torch.set_default_dtype(torch.float64)
     base, prior = _base_config(a)
     r = ranks()
+    members = a.members if a.members is not None else base.members
+    n_params = len(prior.get("parameters", [])) or len(base.parameters) or 1
+    method, why = resolve_method(a.method, members, n_params)
     if r.parallel:  # torchrun: the ranks share the forward ensemble and the restart filter's re-solves;
         a.workers = 1  # rank 0 does everything else
         if r.rank != 0:
-            fwd_only = {"members": a.members, "resolution": a.mesh, "pressure": a.forward_pressure, "inp": a.inp,
+            fwd_only = {"members": a.members, "resolution": a.resolution, "pressure": a.peak_pressure, "inp": a.inp,
                         "camera": a.camera, "face": a.face}
-            config = replace(base, **prior, **{k: v for k, v in fwd_only.items() if v is not None})
+            config = replace(base, **prior, method=method, **{k: v for k, v in fwd_only.items() if v is not None})
             try:
                 run_forward(forward_config(config), forward_dir(config, a.runs_dir), progress=False)
                 if config.restart and not a.no_restart:
@@ -180,6 +229,8 @@ def main(argv=None) -> dict:
             finally:  # leave the group before the interpreter exits: a gloo group still open at exit can
                 finish(r, wait=False)  # abort the process ("terminate called without an active exception")
             return {}
+    if why:
+        print(why, flush=True)
     if a.pressure is not None and a.recording is None:
         raise ValueError("--pressure names the trace of a DIC export: give the export with --recording")
     run_dir = Path(a.runs_dir) / (a.name or Path(a.config).stem)
@@ -188,10 +239,11 @@ def main(argv=None) -> dict:
         a.recording = str(recording_path(a.recording, a, run_dir, face))
     truth = {**prior.pop("truth", {}), **parse_truth(a.truth)}
     overrides = {"recording": a.recording, "truth_c10": truth.pop("C10", None), "noise": a.noise, "members": a.members,
-                 "resolution": a.mesh, "pressure": a.forward_pressure, "restart_every": a.restart_every,
+                 "resolution": a.resolution, "pressure": a.peak_pressure, "restart_every": a.restart_every,
                  "coverage_seeds": a.coverage_seeds, "assimilate_every": a.assimilate_every, "inp": a.inp,
                  "camera": a.camera, "face": a.face}
-    config: CalibrationConfig = replace(base, **prior, **{k: v for k, v in overrides.items() if v is not None})
+    config: CalibrationConfig = replace(base, **prior, method=method,
+                                        **{k: v for k, v in overrides.items() if v is not None})
     if config.inp:  # the deck is read and checked now; its pressure is the forward ensemble's
         config = replace(config, pressure=forward_config(config).pressure)
     if truth and config.recording is None:
@@ -236,7 +288,6 @@ def main(argv=None) -> dict:
     print(json.dumps({"filters": {k: {p: v[p] for p in summary["parameters"]} for k, v in summary["filters"].items()},
                       "truth": summary["truth"], "run": str(run_dir)}, indent=1))
     return summary
-
 
 
 if __name__ == "__main__":

@@ -24,32 +24,25 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-import torch
-
-from torchfra import fem
-from torchfra.fem.structured import box_mesh
-from torchfra.io.vtu import element_fields, write_vtu
-from torchfra.report import tensorboard as tb
+from torchfra.cli.flags import add_peak_pressure, add_run_folder, add_threads, parser
 
 BODY_SIZE_MM = (16.0, 16.0, 60.0)
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
-    )
-    p.add_argument("--name", default="fem_demo", help="run name: outputs go to <runs-dir>/<name>/")
-    p.add_argument("--runs-dir", default="runs", help="folder holding the runs")
+    p = parser(__doc__.split("\n\n")[0])
+    add_run_folder(p, "fem_demo", "outputs")
     p.add_argument("--members", type=int, default=8, help="ensemble members (C10 samples)")
-    p.add_argument("--divisions", default="2,2,6", help="Hex20 elements along x,y,z")
-    p.add_argument("--pressure", type=float, default=2e-4, help="follower pressure on y = 0 at load factor 1 (MPa)")
+    p.add_argument("--divisions", default="2,2,6",
+                   help="Hex20 elements along x,y,z of the block (a box mesh: the actuator's --resolution does not "
+                        "apply here)")
+    add_peak_pressure(p, 2e-4, "follower pressure on y = 0 at load factor 1 (MPa)")
     p.add_argument("--c10", type=float, default=0.0056, help="median C10 of the ensemble (MPa)")
     p.add_argument("--c10-sigma", type=float, default=0.2, help="standard deviation of log C10")
     p.add_argument("--bulk-ratio", type=float, default=1000.0, help="K / mu at the median C10: D1 = 1 / (ratio C10)")
     p.add_argument("--load-steps", type=int, default=10, help="output load factors 1/n, 2/n, ..., 1")
     p.add_argument("--seed", type=int, default=0, help="seed of the C10 draws")
-    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (set explicitly, recorded)")
+    add_threads(p)
     args = p.parse_args(argv)
     try:
         args.divisions = tuple(int(d) for d in args.divisions.split(","))
@@ -60,12 +53,15 @@ def parse_args(argv=None) -> argparse.Namespace:
     for name in ("members", "load_steps", "threads"):
         if getattr(args, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be at least 1")
-    if not (args.pressure > 0 and args.c10 > 0 and args.c10_sigma >= 0 and args.bulk_ratio > 0):
+    if not (args.peak_pressure > 0 and args.c10 > 0 and args.c10_sigma >= 0 and args.bulk_ratio > 0):
         p.error("--pressure, --c10 and --bulk-ratio must be positive and --c10-sigma non-negative")
     return args
 
 
 def build_model(divisions):
+    from torchfra import fem
+    from torchfra.fem.structured import box_mesh
+
     mesh = box_mesh(BODY_SIZE_MM, divisions)
     model = fem.Model(mesh)
     solid = model.add(fem.Hex20Solid(mesh, fem.NeoHookean(), integration="reduced"))  # C3D20RH, the paper's
@@ -78,6 +74,13 @@ def build_model(divisions):
 def main(argv=None) -> dict:
     t_start = time.perf_counter()
     args = parse_args(argv)
+    import numpy as np
+    import torch
+
+    from torchfra import fem
+    from torchfra.io.vtu import element_fields, write_vtu
+    from torchfra.report import tensorboard as tb
+
     torch.set_num_threads(args.threads)
     run_dir = Path(args.runs_dir) / args.name
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -87,7 +90,7 @@ def main(argv=None) -> dict:
     gen = torch.Generator().manual_seed(args.seed)
     C10 = args.c10 * torch.exp(args.c10_sigma * torch.randn(N, generator=gen, dtype=torch.float64))
     D1 = 1.0 / (args.bulk_ratio * args.c10)
-    params = {"C10": C10, "D1": torch.full((N,), D1), "P": torch.full((N,), args.pressure)}
+    params = {"C10": C10, "D1": torch.full((N,), D1), "P": torch.full((N,), args.peak_pressure)}
     load_factors = np.arange(1, args.load_steps + 1) / args.load_steps
 
     t0 = time.perf_counter()
@@ -127,7 +130,7 @@ def main(argv=None) -> dict:
     fig = tb.curves_figure(
         lf0, {"tip displacement u_y (mm)": tip0[:, :, 1], "tip displacement u_z (mm)": tip0[:, :, 2]},
         labels=[f"C10 = {float(c):.4f} MPa" for c in C10], xlabel="load factor",
-        title=f"{N} members, follower pressure {args.pressure:g} MPa on y = 0", failed=~sol.converged,
+        title=f"{N} members, follower pressure {args.peak_pressure:g} MPa on y = 0", failed=~sol.converged,
     )
     if rep is not None:  # u_y is first order in the load: show how far it bends away from linear
         ax = fig.axes[0]
@@ -149,7 +152,7 @@ def main(argv=None) -> dict:
         "dofs": model.n_red,
         "load_steps": len(load_factors),
         "load_factors": load_factors.tolist(),
-        "pressure_MPa": args.pressure,
+        "pressure_MPa": args.peak_pressure,
         "C10_median_MPa": args.c10,
         "C10_log_sigma": args.c10_sigma,
         "D1_per_MPa": D1,
@@ -188,7 +191,7 @@ def main(argv=None) -> dict:
     }
     tb.log_hparams(
         writer,
-        {"members": N, "divisions": args.divisions, "pressure_MPa": args.pressure, "C10_median_MPa": args.c10,
+        {"members": N, "divisions": args.divisions, "pressure_MPa": args.peak_pressure, "C10_median_MPa": args.c10,
          "C10_log_sigma": args.c10_sigma, "bulk_ratio": args.bulk_ratio, "seed": args.seed,
          "threads": summary["threads"]},
         {"hparam/members_converged": summary["members_converged"], "hparam/wall_s": wall,
@@ -205,6 +208,9 @@ def main(argv=None) -> dict:
 
 def _clean(x):
     """Tensor/array/number -> JSON value; NaN (a load not reached) becomes null."""
+    import numpy as np
+    import torch
+
     a = np.asarray(x.detach().cpu() if isinstance(x, torch.Tensor) else x, dtype=np.float64)
     if a.ndim == 0:
         return float(a) if np.isfinite(a) else None

@@ -10,51 +10,64 @@ writes runs/<name>/: diagnosis.json, residual_map.png, residual_over_time.png, r
 observed_vs_models.png, posterior_added.png (when a candidate is accepted), TensorBoard events,
 and solves/ (every FE solve, reused when the diagnosis is run again).
 """
-import argparse
+from __future__ import annotations
+
 import json
 import math
 from pathlib import Path
 
-import torch
-
-from torchfra.actuator.candidates import GRAVITY_DIRECTION
-from torchfra.actuator.deck import DeckModel
-from torchfra.calibration.config import ForwardConfig
-from torchfra.calibration.forward import observed_surface
+from torchfra.cli.flags import add_resolution, add_run_folder, add_threads, parser
 from torchfra.cli.run import add_deck_flags, check_deck_flags
-from torchfra.diagnosis.noise import DiagnosisError
-from torchfra.diagnosis.pipeline import ALL_CANDIDATES, diagnose
-from torchfra.io.dic.importer import add_arguments, recording_path
-from torchfra.io.recordings import read_recording
+from torchfra.io.dic.importer import add_arguments
+
+# torchfra.diagnosis.pipeline.ALL_CANDIDATES (tests/test_help.py checks they agree), here so that --help needs no torch
+CANDIDATES = ("cavity_offset", "compliant_base", "compressibility", "fiber_pitch", "fiber_stiffness", "gravity",
+              "mooney_rivlin", "pressure_sensor", "viscoelasticity")
 
 
-def main(argv=None) -> dict:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def build_parser():
+    """The flags of ``torchfra diagnose`` (no torch imported)."""
+    p = parser(__doc__)
     p.add_argument("recording", help="CSV/NPZ recording (torchfra format), or with --pressure a DIC export (a folder "
                                      "of per-frame files or one file), converted into runs/<name>/recording.csv")
-    p.add_argument("--noise", type=float, default=None, help="noise std (mm); default: estimated from the frames")
-    p.add_argument("--correlation", type=float, default=None,
+    p.add_argument("--noise", type=float, default=None, metavar="MM",
+                   help="noise std (mm); default: estimated from the frames")
+    p.add_argument("--correlation", type=float, default=None, metavar="MM",
                    help="spatial noise correlation length (mm); 0 = independent; default: estimated")
-    p.add_argument("--candidates", default="all", help=f"all, or a comma list of: {', '.join(ALL_CANDIDATES)}")
-    p.add_argument("--name", default=None, help="run name (default: diagnose_<recording stem>)")
-    p.add_argument("--runs-dir", default="runs")
-    p.add_argument("--mesh", type=int, default=1, help="mesh resolution of the diagnosis model (the paper's actuator; "
-                                                       "a deck has its own mesh)")
-    p.add_argument("--load-steps", type=int, default=10)
-    p.add_argument("--alpha", type=float, default=0.01, help="test level")
-    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (recorded)")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--candidates", default="all", help=f"all, or a comma list of: {', '.join(CANDIDATES)}")
+    add_run_folder(p, None, "outputs (default: diagnose_<recording stem>)")
+    add_resolution(p, what="the diagnosis model (the paper's actuator)")
+    p.add_argument("--load-steps", type=int, default=10, help="load steps of each FE solve")
+    p.add_argument("--alpha", type=float, default=0.01, help="test level: the false-alarm probability of each test")
+    add_threads(p)
+    p.add_argument("--quiet", action="store_true", help="no progress bar and no summary lines")
     p.add_argument("--no-mesh-error", action="store_true",
                    help="leave the diagnosis mesh's own discretization error in an extension's residual (by default "
                         "one solve a mesh finer estimates it and takes it out before the surrogate test); only for a "
                         "recording made by this very model on its own mesh")
     add_arguments(p)
-    add_deck_flags(p)
+    add_deck_flags(p, "the diagnosis fits its C10")
     p.add_argument("--gravity", default=None, metavar="X,Y,Z",
                    help="direction of the weight in the model's frame, for the gravity candidate (default 0,-1,0: "
                         "the paper's actuator lies on its side)")
+    return p
+
+
+def main(argv=None) -> dict:
+    p = build_parser()
     a = p.parse_args(argv)
     check_deck_flags(a, pressure_flag=None)  # --pressure is the DIC export's pressure trace here
+    import torch
+
+    from torchfra.actuator.candidates import GRAVITY_DIRECTION
+    from torchfra.actuator.deck import DeckModel
+    from torchfra.calibration.config import ForwardConfig
+    from torchfra.calibration.forward import observed_surface
+    from torchfra.diagnosis.noise import DiagnosisError
+    from torchfra.diagnosis.pipeline import ALL_CANDIDATES, diagnose
+    from torchfra.io.dic.importer import recording_path
+    from torchfra.io.recordings import read_recording
+
     torch.set_num_threads(a.threads)
     cands = "all" if a.candidates == "all" else [c.strip() for c in a.candidates.split(",") if c.strip()]
     if cands != "all":
@@ -83,7 +96,7 @@ def main(argv=None) -> dict:
     if reused and not a.quiet:
         print(f"resuming {run_dir}: {reused} FE solves on disk are reused")
     out = diagnose(rec, noise=a.noise, correlation=a.correlation, candidates=cands, run_dir=run_dir,
-                   resolution=a.mesh, load_steps=a.load_steps, alpha=a.alpha, progress=not a.quiet, deck=deck,
+                   resolution=a.resolution, load_steps=a.load_steps, alpha=a.alpha, progress=not a.quiet, deck=deck,
                    mesh_error=not a.no_mesh_error)
     out["threads"] = a.threads
     (run_dir / "diagnosis.json").write_text(json.dumps(out, indent=1, default=lambda o: o.item() if hasattr(o, "item") else str(o)))

@@ -23,6 +23,7 @@ import argparse
 import sys
 import textwrap
 
+from torchfra.cli.flags import Formatter
 from torchfra.io.dic.exports import DicError
 from torchfra.io.dic.importer import add_arguments, import_export
 from torchfra.observation.recording import RecordingError
@@ -30,7 +31,7 @@ from torchfra.observation.registration import RegistrationError
 
 
 def parse(argv):
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=Formatter)
     p.add_argument("export", nargs="+", help="directory of per-frame export files, or the files themselves")
     p.add_argument("--out", required=True, help="recording to write (.csv or .npz)")
     add_arguments(p, pressure_required=True)

@@ -62,11 +62,19 @@ def run(main: Callable[[], object]) -> NoReturn:
     sys.exit(result if isinstance(result, int) and not isinstance(result, bool) else 0)
 
 
-def add_deck_flags(parser) -> None:
-    """``--inp``, ``--camera``, ``--face``: the user's own model from an Abaqus/CalculiX deck."""
+def add_deck_flags(parser, values: str | None = "needs --param for its uncertain parameters") -> None:
+    """``--inp``, ``--camera``, ``--face``: the user's own model from an Abaqus/CalculiX deck.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The subcommand's parser.
+    values : str or None
+        What ``--inp``'s help says about the deck's parameters in this command (None: nothing).
+    """
     parser.add_argument("--inp", default=None, metavar="DECK.inp",
                         help="the user's own model, an Abaqus/CalculiX input deck (torchfra.io.read_inp), instead of "
-                        "the paper's actuator; needs --param for its uncertain parameters; its pressure is the deck's")
+                        "the paper's actuator; " + (f"{values}; " if values else "") + "its pressure is the deck's")
     parser.add_argument("--camera", choices=["+x", "-x"], default="+x",
                         help="side the camera looks from (default +x: the actuator's front face); recordings observe "
                         "uy and uz, so a deck is oriented with its camera on the x axis")

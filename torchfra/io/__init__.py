@@ -9,9 +9,22 @@
   :func:`~torchfra.io.abaqus.write_inp` (a model into a deck), :func:`~torchfra.io.abaqus.run_calculix`;
 - :func:`write_vtu` (:mod:`~torchfra.io.vtu`): solutions for ParaView.
 """
-from torchfra.io.abaqus import read_inp, write_inp
-from torchfra.io.pressure_trace import read_pressure_trace
-from torchfra.io.recordings import read_recording, write_recording
-from torchfra.io.vtu import write_vtu
+# imported on first use: `torchfra <subcommand> --help` reads the flags without loading torch
+_WHERE = {
+    "read_inp": "torchfra.io.abaqus",
+    "write_inp": "torchfra.io.abaqus",
+    "read_pressure_trace": "torchfra.io.pressure_trace",
+    "read_recording": "torchfra.io.recordings",
+    "write_recording": "torchfra.io.recordings",
+    "write_vtu": "torchfra.io.vtu",
+}
 
 __all__ = ["read_inp", "read_pressure_trace", "read_recording", "write_inp", "write_recording", "write_vtu"]
+
+
+def __getattr__(name: str):
+    if name in _WHERE:
+        import importlib
+
+        return getattr(importlib.import_module(_WHERE[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -9,9 +9,28 @@
 
 Reading and writing recordings as files is :mod:`torchfra.io.recordings`.
 """
-from torchfra.observation.operator import ObservationError, ObservationOperator, regular_grid, visible_faces
-from torchfra.observation.recording import Recording, RecordingError, from_table, to_table
-from torchfra.observation.registration import Registration, RegistrationError, register
+# imported on first use: `torchfra <subcommand> --help` reads the flags without loading torch
+_WHERE = {
+    "ObservationError": "torchfra.observation.operator",
+    "ObservationOperator": "torchfra.observation.operator",
+    "regular_grid": "torchfra.observation.operator",
+    "visible_faces": "torchfra.observation.operator",
+    "Recording": "torchfra.observation.recording",
+    "RecordingError": "torchfra.observation.recording",
+    "from_table": "torchfra.observation.recording",
+    "to_table": "torchfra.observation.recording",
+    "Registration": "torchfra.observation.registration",
+    "RegistrationError": "torchfra.observation.registration",
+    "register": "torchfra.observation.registration",
+}
 
 __all__ = ["ObservationError", "ObservationOperator", "Recording", "RecordingError", "Registration",
            "RegistrationError", "from_table", "regular_grid", "register", "to_table", "visible_faces"]
+
+
+def __getattr__(name: str):
+    if name in _WHERE:
+        import importlib
+
+        return getattr(importlib.import_module(_WHERE[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -31,7 +31,8 @@ def add_arguments(p: argparse.ArgumentParser, pressure_required: bool = False) -
     g = p.add_argument_group("DIC export (read as an export when --pressure is given)")
     g.add_argument("--pressure", required=pressure_required,
                    help="pressure trace CSV (time and pressure with units) of a DIC export")
-    g.add_argument("--format", default="auto", choices=FORMATS)
+    g.add_argument("--format", default="auto", choices=FORMATS,
+                   help="the DIC software that wrote the export (auto: told by its headers)")
     g.add_argument("--scale", type=float, help="mm per pixel, for exports in pixels (DICe)")
     g.add_argument("--units", choices=("mm", "m"), help="length unit of exports whose headers give none")
     g.add_argument("--pressure-units", help="pressure unit if the trace's header gives none (kPa, MPa, Pa, bar...)")
@@ -39,7 +40,9 @@ def add_arguments(p: argparse.ArgumentParser, pressure_required: bool = False) -
                    help="pressure per frame by frame number / file order, or by time (needs --frame-rate)")
     g.add_argument("--frame-rate", type=float, help="camera frames per second (--match time)")
     g.add_argument("--first-frame-time", type=float, default=0.0, help="trace time of the first frame (s)")
-    g.add_argument("--camera-to-model", choices=("register", "identity"), default="register")
+    g.add_argument("--camera-to-model", choices=("register", "identity"), default="register",
+                   help="register: place the points on the model's face by ICP (in-plane placement from "
+                        "--landmarks); identity: the export's coordinates are the model's")
     g.add_argument("--landmarks", help="CSV of DIC point -> model point pairs (initial guess, in-plane placement)")
     g.add_argument("--fit-scale", action="store_true", help="also fit a uniform scale (registration)")
     g.add_argument("--tol", type=float, default=0.5, help="farthest a point may lie from the face (mm)")
