@@ -42,6 +42,22 @@ class _Folder(argparse.Action):
         namespace.out = values
 
 
+def __getattr__(name: str):
+    """The suite's driver functions (torchfra.scenarios.suite) under this module too, imported on first use."""
+    from torchfra.scenarios import suite
+
+    if name in ("cases", "pooled", "run_cases", "table"):
+        return getattr(suite, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def run_case(case: dict, a, out: Path, diagnose) -> dict:
+    """One case of the suite: :func:`torchfra.scenarios.suite.run_case` (imported when a case runs)."""
+    from torchfra.scenarios.suite import run_case as run
+
+    return run(case, a, out, diagnose)
+
+
 def build_parser():
     """The flags of ``torchfra scenarios`` (no torch imported)."""
     p = parser(__doc__)
@@ -98,7 +114,7 @@ def main(argv=None) -> dict:
     import torch
 
     from torchfra import scenarios
-    from torchfra.scenarios.suite import cases, run_case, run_cases, table
+    from torchfra.scenarios.suite import cases, run_cases, table
 
     torch.set_num_threads(a.threads)
     torch.set_default_dtype(torch.float64)
