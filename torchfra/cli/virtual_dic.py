@@ -1,11 +1,11 @@
 """A virtual DIC experiment: the FE actuator filmed through a speckle pattern, correlated by pyvale.
 
     torchfra virtual-dic --out runs/virtual_dic/recording.csv
-    torchfra virtual-dic --pixel-size 0.2 --speckle-size 0.8 --frames 4 --pressure 0.011 --out rec.csv
+    torchfra virtual-dic --pixel-size 0.2 --speckle-size 0.8 --frames 4 --peak-pressure 0.011 --out rec.csv
     torchfra virtual-dic --grey-noise 0.02 --subset 31 --step 10 --working-distance 300 --out rec.csv
 
 The paper's actuator (C10 ``--c10``, no gravity) is solved along a pressure ramp (``--frames``
-loaded frames up to ``--pressure`` MPa, plus the unloaded one); a speckle pattern (dots of
+loaded frames up to ``--peak-pressure`` MPa, plus the unloaded one); a speckle pattern (dots of
 ``--speckle-size`` mm) painted on its front face is rendered by a camera of ``--pixel-size`` mm per
 pixel (the image framed to see the face in every frame, or ``--image-size ROWSxCOLS``; a pinhole
 at ``--working-distance`` mm turns out-of-plane motion into a magnification change; telecentric
@@ -28,6 +28,8 @@ import sys
 import textwrap
 from pathlib import Path
 
+from torchfra.cli.flags import Formatter, add_peak_pressure, add_resolution
+
 
 def _image_size(text: str) -> tuple[int, int]:
     try:
@@ -39,7 +41,7 @@ def _image_size(text: str) -> tuple[int, int]:
 
 def parse(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="torchfra virtual-dic", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+                                formatter_class=Formatter)
     p.add_argument("--out", required=True, help="recording to write (.csv or .npz)")
     p.add_argument("--pixel-size", type=float, default=0.1, help="mm per pixel on the face (default 0.1)")
     p.add_argument("--image-size", type=_image_size, default=None, metavar="ROWSxCOLS",
@@ -52,9 +54,9 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--subset", type=int, default=21, help="subset size, pixels (odd; default 21)")
     p.add_argument("--step", type=int, default=10, help="subset step, pixels (default 10)")
     p.add_argument("--frames", type=int, default=10, help="loaded frames of the pressure ramp (default 10)")
-    p.add_argument("--pressure", type=float, default=0.022, help="top of the pressure ramp, MPa (default 0.022)")
+    add_peak_pressure(p, 0.022, "top of the pressure ramp, MPa")
     p.add_argument("--c10", type=float, default=0.0048, help="C10 of the body, MPa (default 0.0048)")
-    p.add_argument("--mesh", type=int, default=1, help="mesh resolution of the FE model (default 1)")
+    add_resolution(p)
     p.add_argument("--seed", type=int, default=0, help="seed of the speckle pattern and the noise")
     p.add_argument("--threads", type=int, default=1, help="threads of the FE solve and the engine")
     a = p.parse_args(argv)
@@ -107,7 +109,7 @@ def main(argv=None) -> int:
     torch.set_num_threads(a.threads)
     settings = VirtualDicSettings(pixel_size=a.pixel_size, image_size=a.image_size, speckle_size=a.speckle_size,
                                   grey_noise=a.grey_noise, subset_size=a.subset, subset_step=a.step,
-                                  frames=a.frames, pressure=a.pressure, c10=a.c10, resolution=a.mesh,
+                                  frames=a.frames, pressure=a.peak_pressure, c10=a.c10, resolution=a.resolution,
                                   working_distance=a.working_distance, seed=a.seed, threads=a.threads)
     settings.check()
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
