@@ -38,11 +38,9 @@ def assert_nothing_clipped(fig):
     for t, e in texts:
         assert (e.x0 >= box.x0 - 1 and e.y0 >= box.y0 - 1 and e.x1 <= box.x1 + 1 and e.y1 <= box.y1 + 1), \
             f"text {t.get_text()!r} at {e} is outside the figure {box}"
-    for ax in fig.axes:  # tick labels of one axis do not collide
-        for labels, lo in ((ax.get_xticklabels(), 0), (ax.get_yticklabels(), 1)):
-            boxes = sorted([e for t, e in texts if any(t is lab for lab in labels)], key=lambda e: (e.x0, e.y0)[lo])
-            for a, b in zip(boxes, boxes[1:]):
-                assert not a.overlaps(b), f"tick labels overlap: {a} and {b}"
+    for i, (t, e) in enumerate(texts):  # no two texts collide (tick labels, axis labels of neighbouring panels)
+        for u, f in texts[i + 1:]:
+            assert not e.overlaps(f), f"texts {t.get_text()!r} and {u.get_text()!r} overlap: {e} and {f}"
 
 
 def titled(fig) -> bool:
