@@ -7,7 +7,19 @@ ensembles and posteriors), :mod:`torchfra.actuator` (the paper's actuator, the c
 user's deck), :mod:`torchfra.io` (files in and out), :mod:`torchfra.observation` (recordings, the
 camera's view), :mod:`torchfra.verification`, :mod:`torchfra.fem` (ensemble-batched finite elements);
 :mod:`torchfra.assimilation` (ensemble Kalman analysis and filters) and :mod:`torchfra.runtime` stand alone.
-Importing torchfra changes nothing in the host process; the commands tune its allocator
+:func:`torchfra.calibrate` and :func:`torchfra.diagnose` (:mod:`torchfra.api`) are the estimators a Python
+user calls. Importing torchfra changes nothing in the host process; the commands tune its allocator
 (:mod:`torchfra.runtime.allocator`).
 """
 __version__ = "0.1.0"
+
+__all__ = ["calibrate", "diagnose"]
+
+
+def __getattr__(name: str):
+    # the estimators (torchfra.api) load torch and the wings on first use, not on ``import torchfra``
+    if name in ("calibrate", "diagnose", "CalibrationResult", "DiagnosisResult", "ParameterPosterior"):
+        from torchfra import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'torchfra' has no attribute {name!r}")

@@ -158,6 +158,7 @@ def write_calibration_outputs(out: dict, run_dir, wall_s: float) -> dict:
     if pset.d > 1:
         log_figure(writer, "calibration/pairs", pairs_figure(out), run_dir / "pairs.png")
     _log_steps(writer, out)
+    log_filter_layout(writer, pset.names, list(out["filters"]), out["truth"] is not None)
     metrics = {f"final/{n}/{p}_mean": r[p]["mean"] for n, r in rows.items() for p in pset.names}
     metrics.update({f"final/{n}/log_evidence": r["log_evidence"] for n, r in rows.items()})
     log_hparams(writer, {"members": summary["members"], "frames": summary["frames"], "resolution": cfg.resolution,
@@ -338,6 +339,35 @@ def pairs_figure(out: dict) -> Figure:
         ax.legend(fontsize="x-small")
     fig.suptitle("exact posterior regions and the filters' final ensembles", fontsize="medium")
     return fig
+
+
+def log_filter_layout(writer, parameters: list[str], filters: list[str], truth: bool) -> None:
+    """A custom-scalars layout (TensorBoard's CUSTOM SCALARS dashboard) putting every filter's curve of a
+    parameter on one chart beside the exact posterior's: per parameter its mean, std (and error from the
+    truth for a synthetic recording) over the frames, and the filters' innovation checks on two more.
+
+    Parameters
+    ----------
+    writer : SummaryWriter
+        The run's writer.
+    parameters : list of str
+        The uncertain parameters (the tags' ``<p>_mean/<filter>``).
+    filters : list of str
+        The filters run, ``exact`` among them.
+    truth : bool
+        The recording is synthetic (``<p>_abs_error/<filter>`` was logged).
+    """
+    ensembles = [f for f in filters if f != "exact"]
+    per_frame = filters if len(parameters) == 1 else ensembles  # the exact one is logged per frame for one parameter
+    charts = {}
+    for p in parameters:
+        charts[f"{p} mean: the filters and the exact posterior"] = ["Multiline", [f"{p}_mean/{f}" for f in per_frame]]
+        charts[f"{p} std: the filters and the exact posterior"] = ["Multiline", [f"{p}_std/{f}" for f in per_frame]]
+        if truth:
+            charts[f"{p} |mean - truth|"] = ["Multiline", [f"{p}_abs_error/{f}" for f in ensembles]]
+    charts["innovation RMS"] = ["Multiline", [f"innovation_rms/{f}" for f in ensembles]]
+    charts["NIS over its expectation"] = ["Multiline", [f"nis_over_expectation/{f}" for f in ensembles]]
+    writer.add_custom_scalars({"calibration": charts})
 
 
 def _log_steps(writer, out: dict) -> None:
