@@ -73,7 +73,7 @@ def test_devices_and_fifos_are_refused_by_the_reading_layer(tmp_path):
     ("*Material, name=SILICONE\n*Hyperelastic, neo hooke\nSECRET-1234, 0.02\n".encode(),
      "must be a number, got \\(text of an included file, not shown\\)"),
     ("SECRET-1234\n".encode("utf-16"), "UTF-16 text"),
-    (b"SECRET-1234\x00\x00", "NUL bytes: a binary file, not included deck text"),
+    (b"SECRET-1234\x00\x00", "NUL bytes: a binary file, not deck text"),
     ("SECRET-\xb5\n".encode("latin-1"), "byte 0xb5 at column 8 is not utf-8 text"),
 ], ids=["integer", "number", "utf16", "binary", "latin1"])
 def test_an_included_files_text_is_never_quoted(tmp_path, content, match):

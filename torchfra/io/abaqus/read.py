@@ -228,7 +228,8 @@ def _include_target(card: _Card, path: Path, roots: list[Path]) -> Path:
     return resolved
 
 
-def _cards(path: Path, roots: list[Path], cards: list[_Card] | None = None, depth: int = 0) -> list[_Card]:
+def _cards(path: Path, roots: list[Path], cards: list[_Card] | None = None, depth: int = 0,
+           via: _Card | None = None) -> list[_Card]:
     """Cards of a deck in file order. ``*INCLUDE`` inserts its file's lines in place, as Abaqus does:
     data lines of an included file go on the card before the ``*INCLUDE`` if the file starts with
     data, and data lines after it go on the included file's last card. Included files must lie under
@@ -237,8 +238,12 @@ def _cards(path: Path, roots: list[Path], cards: list[_Card] | None = None, dept
     if depth > 10:
         raise InpError(f"{path}: *INCLUDE nested more than 10 deep")
     included = depth > 0
-    lines = read_text(path, what="included deck" if included else "deck", max_bytes=MAX_DECK_BYTES,
-                      error=InpError).splitlines()
+    try:
+        lines = read_text(path, what="deck", max_bytes=MAX_DECK_BYTES, error=InpError).splitlines()
+    except InpError as exc:
+        if via is None:
+            raise
+        raise via.error(f"INPUT={via.params['INPUT']}: {exc}") from None
     i = 0
     while i < len(lines):
         number, text = i + 1, lines[i].strip()
@@ -256,7 +261,7 @@ def _cards(path: Path, roots: list[Path], cards: list[_Card] | None = None, dept
             card = _Card(keyword, params, str(path), number, included=included)
             if keyword == "INCLUDE":
                 card.check_params({"INPUT"}, {"INPUT"})
-                _cards(_include_target(card, Path(path), roots), roots, cards, depth + 1)
+                _cards(_include_target(card, Path(path), roots), roots, cards, depth + 1, card)
             else:
                 cards.append(card)
             continue
