@@ -9,6 +9,7 @@ import pytest
 
 from torchfra.calibration.priors import PriorError, read_parameter_file
 from torchfra.io.abaqus import InpError, read_inp
+from torchfra.io.dic.exports import read_frame, read_landmarks
 from torchfra.io.files import InputFileError, check_regular, read_bytes, read_text
 from torchfra.io.pressure_trace import read_pressure_trace
 from torchfra.io.recordings import read_recording
@@ -102,3 +103,18 @@ def test_a_deck_named_on_the_command_line_that_is_a_device_is_not_called_missing
         read_deck("/dev/zero")
     with pytest.raises(ValueError, match="no such deck file"):
         read_deck(tmp_path / "nope.inp")
+
+
+@pytest.mark.parametrize("reader, what", [
+    (lambda p: read_frame(p), "DIC frame"),
+    (lambda p: read_landmarks(p, None), "landmark"),  # refused before the series is looked at
+], ids=["frame", "landmarks"])
+def test_dic_frames_and_landmark_files_are_opened_through_the_layer(tmp_path, reader, what):
+    _fifo(tmp_path / "pipe.csv")
+    with pytest.raises(DicError, match="pipe.csv: is a FIFO \\(named pipe\\), not a regular file"):
+        reader(tmp_path / "pipe.csv")
+    with pytest.raises(DicError, match=f"gone.csv: no such {what} file"):
+        reader(tmp_path / "gone.csv")
+    (tmp_path / "zero.csv").symlink_to("/dev/zero")
+    with pytest.raises(DicError, match="zero.csv: is a device \\(a link to /dev/zero\\), not a regular file"):
+        reader(tmp_path / "zero.csv")

@@ -190,7 +190,7 @@ def read_frame(path, fmt: str = "auto", *, scale=None, units=None) -> DicFrame:
     """Read one export file (any supported layout, detected from its header)."""
     path = Path(path)
     layouts = _layouts(fmt)
-    lines = read_lines(path)
+    lines = read_lines(path, what="DIC frame")
     found = find_header(lines, layouts)
     if found is None:
         seen = header_guess(lines)
@@ -448,7 +448,7 @@ def read_landmarks(path, series: DicSeries) -> tuple[np.ndarray, np.ndarray]:
     for 2-D data) or ``point_id,model_x,model_y,model_z`` (a DIC point by its id). Model side in mm.
     Returns (src (L, 3) mm camera frame, dst (L, 3) mm model frame)."""
     path = Path(path)
-    lines = [ln for ln in read_lines(path) if ln.strip()]
+    lines = [ln for ln in read_lines(path, what="landmark") if ln.strip()]
     if not lines:
         raise DicError(f"{path}: the landmark file is empty")
     header, delim = split_line(lines[0])
