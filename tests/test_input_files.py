@@ -3,6 +3,7 @@ folder, a FIFO, a device (or a link to one), an oversized, binary or UTF-16 file
 file's name and what to do, before anything is parsed. A FIFO must be refused from its stat: opening
 it would block until a writer comes; /dev/zero would be read forever."""
 import os
+import re
 import threading
 
 import pytest
@@ -118,3 +119,22 @@ def test_dic_frames_and_landmark_files_are_opened_through_the_layer(tmp_path, re
     (tmp_path / "zero.csv").symlink_to("/dev/zero")
     with pytest.raises(DicError, match="zero.csv: is a device \\(a link to /dev/zero\\), not a regular file"):
         reader(tmp_path / "zero.csv")
+
+
+@pytest.mark.parametrize("command", ["forward", "calibrate"])
+def test_inp_that_is_a_device_or_fifo_is_refused_by_the_command(tmp_path, command):
+    """``torchfra <command> --inp /dev/zero`` (or a FIFO) as a user runs it: exit 2, "not a regular
+    file" (not "no such deck file"), no run folder."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    _fifo(tmp_path / "pipe.inp")
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]), OMP_NUM_THREADS="1")
+    for deck, kind in (("/dev/zero", "a device"), ("pipe.inp", "a FIFO \\(named pipe\\)")):
+        out = subprocess.run([sys.executable, "-m", "torchfra", command, "--inp", deck, "--param",
+                              "C10=lognormal:0.1,0.03"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                             timeout=300)
+        assert out.returncode == 2, out.stderr
+        assert re.search(f"error: --inp {deck}: is {kind}, not a regular file", out.stderr), out.stderr
+        assert "Traceback" not in out.stderr and not (tmp_path / "runs" / "forward_cache").exists()
