@@ -185,3 +185,23 @@ def test_an_unclosed_part_and_parts_without_an_assembly_are_named(tmp_path):
     (tmp_path / "b.inp").write_text(text.split("** ASSEMBLY")[0] + MATERIAL)
     with pytest.raises(InpError, match="b.inp: the deck defines parts \\(BLOCK\\) but no \\*ASSEMBLY"):
         read_inp(tmp_path / "b.inp")
+
+
+TOP = np.flatnonzero(np.isclose(MESH.nodes[:, 2], 4.0))
+
+
+def test_an_assembly_reference_point_is_numbered_after_the_instances(tmp_path):
+    """A rigid body CAE writes at assembly level: its reference point is assembly node 1 (a set
+    ``RP-1``), tied to the instance's top; fixed in all six dofs it clamps the top, as the flat deck
+    with the reference node numbered after the block's does."""
+    n = MESH.n_nodes
+    rigid_flat = (f"*Node\n{n + 1}, 1., 0.5, 4.\n*Nset, nset=Top\n" + _ids(TOP)
+                  + f"*Rigid Body, ref node={n + 1}, tie nset=Top\n")
+    flat = flat_deck([MESH.nodes]).replace("*Material", rigid_flat + "*Material", 1)
+    flat = flat.replace("Fixed, ENCASTRE\n", f"Fixed, ENCASTRE\n{n + 1}, ENCASTRE\n")
+    rigid_cae = ("*Node\n1, 1., 0.5, 4.\n*Nset, nset=RP-1, internal\n1,\n*Nset, nset=_T, internal, instance=Block-1\n"
+                 + _ids(TOP) + "*Rigid Body, ref node=RP-1, tie nset=_T\n")
+    cae = cae_deck([[]]).replace("*End Assembly", rigid_cae + "*End Assembly")
+    cae = cae.replace("Block-1.Base, ENCASTRE\n", "Block-1.Base, ENCASTRE\nRP-1, ENCASTRE\n")
+    model, ids = _same_model(tmp_path, flat, cae, solve=False)
+    assert model.clamped_dofs.size == 3 * (BASE.size + TOP.size) and model.n_nodes == n  # the point is no model node
