@@ -223,7 +223,8 @@ def table_from_npz(path: Path, max_rows: int = MAX_ROWS) -> dict[str, np.ndarray
                 a = {c: _npz_array(z, c, path, max_rows) for c in COLUMNS}
         except RecordingError:
             raise
-        except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, RuntimeError, OSError, ValueError) as exc:
+        except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, RuntimeError, OSError,
+                ValueError) as exc:
             raise RecordingError(f"{path}: a damaged NPZ archive ({' '.join(str(exc).split())})") from exc
     shapes = {c: v.shape for c, v in a.items()}
     if all(v.ndim == 1 for v in a.values()):

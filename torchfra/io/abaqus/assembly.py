@@ -72,7 +72,8 @@ def placement(card, number) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         line = card.data[0]
         if len(line.fields) > 3:
             raise card.error("the first data line is the translation 'tx, ty, tz'", line)
-        t = np.array([number(card, line, f or "0", "a translation") for f in line.fields] + [0.0] * (3 - len(line.fields)))
+        values = [number(card, line, f or "0", "a translation") for f in line.fields]
+        t = np.array(values + [0.0] * (3 - len(values)))
     if len(card.data) == 2:
         line = card.data[1]
         if len(line.fields) != 7:
