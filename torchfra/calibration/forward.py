@@ -172,230 +172,294 @@ def run_forward(config: ForwardConfig, run_dir: str | Path, progress: bool = Tru
     (``fem.reduced``); ``method="full"``: every member by full Newton.
     Returns a dict with the model, observation operator, parameters, per-member solver records and
     ``Y_fe`` (N, frames, P, 2); members already on disk are loaded, not solved again.
-    """
-    from torchfra.fem.reduced import select_snapshots, solve_reduced
 
+    The steps (:class:`_ForwardRun`): the model and the members' spans, the full-Newton members (every
+    one, or the snapshots), the reduced members on the snapshots' basis, and the records gathered. A
+    member another worker held and left is solved here, and the run starts over from its files.
+    """
     if config.method not in ("reduced", "full"):
         raise ValueError(f"forward method must be 'reduced' or 'full', got {config.method!r}")
-    from torchfra.runtime.distributed import broadcast_ints, ranks, share_file, share_files
+    run = _ForwardRun(config, Path(run_dir), progress)
+    run.solve_full_members()
+    if run.config.method == "reduced":
+        snap_records = run.wait_for(run.first)
+        if snap_records is None:
+            run.close_bar()
+            return run_forward(run.config, run_dir, progress)
+        run.solve_reduced_members(snap_records)
+    records = run.wait_for(run.spans)
+    if records is None:
+        run.close_bar()
+        return run_forward(run.config, run_dir, progress)
+    return run.gather(records)
 
-    run_dir = Path(run_dir)
-    r = ranks()  # torchrun: members are shared out by rank, not claimed through lock files
-    progress = progress and r.rank == 0
-    config = with_deck(config)
-    torch.set_num_threads(config.threads)
-    t0 = time.perf_counter()
-    model, info, base = forward_model(config)
-    if config.method == "reduced" and any(t.global_dofs for t in model.terms):
-        if progress:  # a fiber pitch: each member's own fiber embedding, no shared blocks to hyper-reduce
-            print("forward ensemble: the model couples each member's dofs its own way (a fiber pitch); every member "
-                  "is solved by full Newton", flush=True)
-        config = replace(config, method="full")
-    _check_resume(run_dir, config)
-    mesh = model.mesh
-    operator = ObservationOperator(mesh, observed_faces(mesh, config.camera, config.face), points="nodes")
-    params = member_parameters(config, base)
-    load = np.arange(1, config.load_steps + 1) / config.load_steps
-    chunks_dir = run_dir / "members"
-    chunks_dir.mkdir(exist_ok=True)
-    M = config.members
-    if config.method == "full":
-        spans = [(s, min(s + config.chunk, M)) for s in range(0, M, config.chunk)]
-        first = spans
-    else:  # one file per member: snapshots first, then the reduced members
-        spans = [(m, m + 1) for m in range(M)]
-        snap = sorted(select_snapshots(params, config.snapshots or None).tolist())
-        first = [(m, m + 1) for m in snap]
-    path_of = {start: chunks_dir / f"chunk_{start:05d}.npz" for start, _ in spans}
-    bar, phase = None, first
-    reused = _finished(chunks_dir, spans)
-    if progress and reused:
-        print(f"forward ensemble: reusing {reused} of {M} members already solved in {chunks_dir}", flush=True)
 
-    def open_bar(span_list, what):
+class _ForwardRun:
+    """One forward run on a run folder, step by step (:func:`run_forward`): its settings, model, members
+    and their files, the progress bar, and the torchrun ranks sharing the members."""
+
+    def __init__(self, config: ForwardConfig, run_dir: Path, progress: bool):
+        from torchfra.fem.reduced import select_snapshots
+        from torchfra.runtime.distributed import ranks
+
+        self.run_dir = run_dir
+        self.r = ranks()  # torchrun: members are shared out by rank, not claimed through lock files
+        self.progress = progress and self.r.rank == 0
+        config = with_deck(config)
+        torch.set_num_threads(config.threads)
+        self.t0 = time.perf_counter()
+        self.model, self.info, base = forward_model(config)
+        if config.method == "reduced" and any(t.global_dofs for t in self.model.terms):
+            if self.progress:  # a fiber pitch: each member's own fiber embedding, no shared blocks to hyper-reduce
+                print("forward ensemble: the model couples each member's dofs its own way (a fiber pitch); every "
+                      "member is solved by full Newton", flush=True)
+            config = replace(config, method="full")
+        self.config = config
+        _check_resume(run_dir, config)
+        self.mesh = self.model.mesh
+        self.operator = ObservationOperator(self.mesh, observed_faces(self.mesh, config.camera, config.face),
+                                            points="nodes")
+        self.params = member_parameters(config, base)
+        self.load = np.arange(1, config.load_steps + 1) / config.load_steps
+        self.chunks_dir = run_dir / "members"
+        self.chunks_dir.mkdir(exist_ok=True)
+        M = config.members
+        if config.method == "full":
+            self.spans = [(s, min(s + config.chunk, M)) for s in range(0, M, config.chunk)]
+            self.first = self.spans
+            self.snap = []
+        else:  # one file per member: snapshots first, then the reduced members
+            self.spans = [(m, m + 1) for m in range(M)]
+            self.snap = sorted(select_snapshots(self.params, config.snapshots or None).tolist())
+            self.first = [(m, m + 1) for m in self.snap]
+        self.path_of = {start: self.chunks_dir / f"chunk_{start:05d}.npz" for start, _ in self.spans}
+        self.stop_of = dict(self.spans)
+        self.bar, self.phase = None, self.first
+        reused = _finished(self.chunks_dir, self.spans)
+        if self.progress and reused:
+            print(f"forward ensemble: reusing {reused} of {M} members already solved in {self.chunks_dir}", flush=True)
+        self.open_bar(self.first, "FE solves" if config.method == "full" else "snapshot members, full Newton")
+
+    # -- progress ------------------------------------------------------------------------------------
+    def open_bar(self, span_list, what):
         """One bar per phase (full Newton members, reduced members: their rates differ ~5x, so one
         bar's time left would mislead). initial = members already on disk: the rate, hence the time
         left, comes from members solved in this run only (by this process or any other worker on the
         same folder), never from loading cached ones."""
-        nonlocal bar, phase
-        if bar is not None:
-            bar.close()
-        phase = span_list
-        if progress:
+        self.close_bar()
+        self.phase = span_list
+        if self.progress:
             from tqdm.auto import tqdm
 
             total = sum(stop - start for start, stop in span_list)
-            bar = tqdm(total=total, initial=_finished(chunks_dir, span_list), unit="member", smoothing=0,
-                       desc=f"forward ensemble, {model.n_red} dofs, {what}")
+            self.bar = tqdm(total=total, initial=_finished(self.chunks_dir, span_list), unit="member", smoothing=0,
+                            desc=f"forward ensemble, {self.model.n_red} dofs, {what}")
 
-    def tick():
-        if bar is not None:
-            bar.update(_finished(chunks_dir, phase) - bar.n)
+    def tick(self):
+        if self.bar is not None:
+            self.bar.update(_finished(self.chunks_dir, self.phase) - self.bar.n)
 
-    open_bar(first, "FE solves" if config.method == "full" else "snapshot members, full Newton")
+    def close_bar(self):
+        if self.bar is not None:
+            self.bar.close()
 
-    def solve_full(start, stop, **extra):
-        chunk_params = {k: v[start:stop] for k, v in params.items()}
+    # -- members and their files ---------------------------------------------------------------------
+    def solve_full(self, start, stop, **extra):
+        """Members ``start..stop-1`` by full Newton, saved to their chunk file."""
+        config = self.config
+        chunk_params = {k: v[start:stop] for k, v in self.params.items()}
         t_chunk = time.perf_counter()
-        sol = fem.solve(model, chunk_params, load, fem.NewtonOptions(**{"member_budget": config.newton_budget,
-                                                                       "member_seconds": config.newton_seconds,
-                                                                       **config.newton}))
-        u = sol.u[:, :, : mesh.n_nodes]
+        sol = fem.solve(self.model, chunk_params, self.load,
+                        fem.NewtonOptions(**{"member_budget": config.newton_budget,
+                                             "member_seconds": config.newton_seconds, **config.newton}))
+        u = sol.u[:, :, : self.mesh.n_nodes]
         states = {"states": sol.a.numpy()} if config.method == "reduced" else {}
-        _save_solution(path_of[start], operator(u).numpy(), sol.u[:, -1].numpy(), sol,
+        _save_solution(self.path_of[start], self.operator(u).numpy(), sol.u[:, -1].numpy(), sol,
                        time.perf_counter() - t_chunk, method=np.array(["full"] * (stop - start)), **states, **extra)
 
-    def wait_for(span_list):
+    def wait_for(self, span_list):
         """Records of these spans; chunks other workers hold are waited for (a dead worker's lock
         is taken over and the member solved here). None if this process took one over."""
         records = []
         for start, _ in span_list:
-            path = path_of[start]
+            path = self.path_of[start]
             while not path.exists():
-                if _claim(path.with_suffix(".lock"), quiet=not progress):
+                if _claim(path.with_suffix(".lock"), quiet=not self.progress):
                     path.with_suffix(".lock").unlink()
                     return None
-                tick()  # members other workers finish count as progress too
+                self.tick()  # members other workers finish count as progress too
                 time.sleep(2.0)
             records.append(load_chunk(path))
         return records
 
-    stop_of = dict(spans)
-
-    def todo(starts):
+    def todo(self, starts):
         """torchrun: the spans still to solve, as rank 0's run folder lists them (every rank agrees)."""
-        return broadcast_ints([s for s in starts if not path_of[s].exists()] if r.rank == 0 else None, r)
+        from torchfra.runtime.distributed import broadcast_ints
 
-    def share(solved):
-        share_files([path_of[s] for s in solved], [r.owner(solved, s) for s in solved], r)
+        return broadcast_ints([s for s in starts if not self.path_of[s].exists()] if self.r.rank == 0 else None,
+                              self.r)
 
-    if r.parallel:
-        mine = todo([start for start, _ in first])
-        for start in r.share(mine):
-            solve_full(start, stop_of[start])
-            tick()
-        share(mine)
-    for start, stop in ([] if r.parallel else first):
-        path = path_of[start]
-        if path.exists() or not _claim(path.with_suffix(".lock"), quiet=not progress):
-            continue  # done, or another worker on the same run folder is solving it
-        solve_full(start, stop)
-        path.with_suffix(".lock").unlink()
-        tick()
-    if config.method == "reduced":
-        snap_records = wait_for(first)
-        if snap_records is None:
-            if bar is not None:
-                bar.close()
-            return run_forward(config, run_dir, progress)
-        rest = [m for m in range(M) if m not in set(snap)]
-        hyper = None
-        left = todo(rest) if r.parallel else [m for m in rest if not path_of[m].exists()]
+    def share(self, solved):
+        from torchfra.runtime.distributed import share_files
+
+        share_files([self.path_of[s] for s in solved], [self.r.owner(solved, s) for s in solved], self.r)
+
+    # -- the steps -----------------------------------------------------------------------------------
+    def solve_full_members(self):
+        """Step 1: the full-Newton members (every member, or the snapshots of the reduced basis), shared
+        out by rank (torchrun) or claimed one by one through lock files (workers on one folder)."""
+        if self.r.parallel:
+            mine = self.todo([start for start, _ in self.first])
+            for start in self.r.share(mine):
+                self.solve_full(start, self.stop_of[start])
+                self.tick()
+            self.share(mine)
+            return
+        for start, stop in self.first:
+            path = self.path_of[start]
+            if path.exists() or not _claim(path.with_suffix(".lock"), quiet=not self.progress):
+                continue  # done, or another worker on the same run folder is solving it
+            self.solve_full(start, stop)
+            path.with_suffix(".lock").unlink()
+            self.tick()
+
+    def reduced_model(self, snap_records, rest):
+        """The hyper-reduced model of the snapshots when members are left to solve (rank 0 builds it, the
+        other torchrun ranks read its file), None otherwise; and the members left."""
+        from torchfra.runtime.distributed import broadcast_ints, share_file
+
+        r, hyper = self.r, None
+        left = self.todo(rest) if r.parallel else [m for m in rest if not self.path_of[m].exists()]
         if left:
-            if progress:
+            if self.progress:
                 print("forward ensemble: building the reduced basis and its hyper-reduction", flush=True)
-            if r.rank == 0:  # torchrun: rank 0 builds it, the others read its file
-                hyper = _reduced_model(run_dir, model, snap_records, params, snap, load, quiet=not progress)
+            if r.rank == 0:
+                hyper = _reduced_model(self.run_dir, self.model, snap_records, self.params, self.snap, self.load,
+                                       quiet=not self.progress)
             if r.parallel and broadcast_ints([int(hyper is not None)] if r.rank == 0 else None, r)[0]:
-                share_file(run_dir / "reduced_model.npz", r, 0)
+                share_file(self.run_dir / "reduced_model.npz", r, 0)
                 if r.rank != 0:
-                    hyper = _reduced_model(run_dir, model, snap_records, params, snap, load, quiet=True)
-        basis_members, basis_records = list(snap), list(snap_records)
-        open_bar([(m, m + 1) for m in rest], "reduced members")
-        queue = r.share(left) if r.parallel else rest
+                    hyper = _reduced_model(self.run_dir, self.model, snap_records, self.params, self.snap, self.load,
+                                           quiet=True)
+        return hyper, left
+
+    def next_batch(self, queue, i):
+        """Up to ``reduced_batch`` members of ``queue`` from ``i`` on that this process takes (torchrun: its
+        share; otherwise those not on disk whose lock it gets), and where the queue continues."""
+        batch = []
+        while i < len(queue) and len(batch) < self.config.reduced_batch:
+            m = queue[i]
+            i += 1
+            if self.r.parallel or (not self.path_of[m].exists()
+                                   and _claim(self.path_of[m].with_suffix(".lock"), quiet=not self.progress)):
+                batch.append(m)
+        return batch, i
+
+    def solve_reduced_batch(self, hyper, batch, digest):
+        """One batch of members on the reduced basis, resumed from its checkpoint after the last load step
+        it saved; members that pass the check are saved. Returns those to solve in full and the solution."""
+        from torchfra.fem.reduced import solve_reduced
+
+        load, redo = self.load, []
+        t_batch = time.perf_counter()
+        idx = torch.as_tensor(batch)
+        partial = self.path_of[batch[0]].with_name(f"batch_{batch[0]:05d}.partial.npz")
+        resume = _read_partial(partial, batch, digest, load)
+        if resume is not None and self.progress:
+            self.bar.write(f"forward ensemble: resuming reduced members {batch} after load step "
+                           f"{int(resume['step']) + 1} of {load.size} (saved in {partial.name})")
+        rs = solve_reduced(hyper, {k: v[idx] for k, v in self.params.items()}, load, resume=resume,
+                           on_step=lambda state: _write_partial(partial, batch, digest, state))
+        wall = (time.perf_counter() - t_batch) / len(batch)
+        for j, m in enumerate(batch):
+            if rs.status[j] != "converged" or not rs.error_estimate[j] <= self.config.reduced_tol:
+                redo.append(m)
+                continue
+            u = rs.u[j : j + 1, :, : self.mesh.n_nodes]
+            rec = fem.Solution(load, rs.u[j:j + 1], rs.a[j:j + 1], np.array(["converged"]), np.ones(1),
+                               rs.iterations[j:j + 1] + rs.polish[j:j + 1], np.full(1, load.size),
+                               np.zeros(1, dtype=int), np.full(1, np.nan), [[]],
+                               {k: v / len(batch) for k, v in rs.timings.items()}, None, None)
+            _save_solution(self.path_of[m], self.operator(u).numpy(), rs.u[j:j + 1, -1].numpy(), rec, wall,
+                           method=np.array(["reduced"]), error_estimate=rs.error_estimate[j:j + 1],
+                           full_tangents=rs.full_tangents[j:j + 1])
+        partial.unlink(missing_ok=True)  # its members are saved (or go to full Newton next)
+        return redo, rs
+
+    def enrich(self, redo, basis_members, basis_records):
+        """Greedy enrichment: the members the basis failed join it, and the basis is built again (a prior
+        over several parameters needs more snapshots than the first few; each failure shows where)."""
+        for m in redo:
+            rec = load_chunk(self.path_of[m])
+            if "states" in rec:
+                basis_members.append(m)
+                basis_records.append(rec)
+        order = np.argsort(basis_members)
+        if self.progress:
+            self.bar.write(f"forward ensemble: {len(redo)} member(s) failed the reduced check; the basis now "
+                           f"holds {len(basis_members)} full solves, rebuilding it")
+        return _reduced_model(self.run_dir, self.model, [basis_records[j] for j in order], self.params,
+                              [basis_members[j] for j in order], self.load, quiet=True, rebuild=True)
+
+    def solve_reduced_members(self, snap_records):
+        """Step 2 (``method="reduced"``): every other member on the snapshots' basis in batches, those that
+        fail the check by full Newton, the basis enriched by them while members are left."""
+        rest = [m for m in range(self.config.members) if m not in set(self.snap)]
+        hyper, left = self.reduced_model(snap_records, rest)
+        basis_members, basis_records = list(self.snap), list(snap_records)
+        self.open_bar([(m, m + 1) for m in rest], "reduced members")
+        queue = self.r.share(left) if self.r.parallel else rest
         digest, digest_of = "", None
         i = 0
         while i < len(queue):
-            batch = []
-            while i < len(queue) and len(batch) < config.reduced_batch:
-                m = queue[i]
-                i += 1
-                if r.parallel or (not path_of[m].exists()
-                                  and _claim(path_of[m].with_suffix(".lock"), quiet=not progress)):
-                    batch.append(m)
+            batch, i = self.next_batch(queue, i)
             if not batch:
                 continue
-            redo = batch if hyper is None else []
+            redo, rs = batch, None
             if hyper is not None:
-                t_batch = time.perf_counter()
-                idx = torch.as_tensor(batch)
-                partial = path_of[batch[0]].with_name(f"batch_{batch[0]:05d}.partial.npz")
                 if digest_of is not hyper:  # once per reduction (built again on enrichment)
                     digest, digest_of = _reduction_digest(hyper), hyper
-                resume = _read_partial(partial, batch, digest, load)
-                if resume is not None and progress:
-                    bar.write(f"forward ensemble: resuming reduced members {batch} after load step "
-                              f"{int(resume['step']) + 1} of {load.size} (saved in {partial.name})")
-                rs = solve_reduced(hyper, {k: v[idx] for k, v in params.items()}, load, resume=resume,
-                                   on_step=lambda state: _write_partial(partial, batch, digest, state))
-                wall = (time.perf_counter() - t_batch) / len(batch)
-                for j, m in enumerate(batch):
-                    if rs.status[j] != "converged" or not rs.error_estimate[j] <= config.reduced_tol:
-                        redo.append(m)
-                        continue
-                    u = rs.u[j : j + 1, :, : mesh.n_nodes]
-                    rec = fem.Solution(load, rs.u[j:j + 1], rs.a[j:j + 1], np.array(["converged"]), np.ones(1),
-                                       rs.iterations[j:j + 1] + rs.polish[j:j + 1], np.full(1, load.size),
-                                       np.zeros(1, dtype=int), np.full(1, np.nan), [[]],
-                                       {k: v / len(batch) for k, v in rs.timings.items()}, None, None)
-                    _save_solution(path_of[m], operator(u).numpy(), rs.u[j:j + 1, -1].numpy(), rec, wall,
-                                   method=np.array(["reduced"]), error_estimate=rs.error_estimate[j:j + 1],
-                                   full_tangents=rs.full_tangents[j:j + 1])
-            if hyper is not None:
-                partial.unlink(missing_ok=True)  # its members are saved (or go to full Newton below)
+                redo, rs = self.solve_reduced_batch(hyper, batch, digest)
             for m in redo:  # the reduced answer failed its check: Newton on the full model
-                solve_full(m, m + 1, error_estimate=np.asarray(
-                    [np.nan if hyper is None else rs.error_estimate[batch.index(m)]]))
-            if hyper is not None and redo and any(not path_of[m].exists() for m in queue[i:]):
-                # greedy enrichment: the members the basis failed join it, and the basis is built again
-                # (a prior over several parameters needs more snapshots than the first few; each
-                # failure shows where)
-                for m in redo:
-                    rec = load_chunk(path_of[m])
-                    if "states" in rec:
-                        basis_members.append(m)
-                        basis_records.append(rec)
-                order = np.argsort(basis_members)
-                if progress:
-                    bar.write(f"forward ensemble: {len(redo)} member(s) failed the reduced check; the basis now "
-                              f"holds {len(basis_members)} full solves, rebuilding it")
-                hyper = _reduced_model(run_dir, model, [basis_records[j] for j in order], params,
-                                       [basis_members[j] for j in order], load, quiet=True, rebuild=True)
+                self.solve_full(m, m + 1, error_estimate=np.asarray(
+                    [np.nan if rs is None else rs.error_estimate[batch.index(m)]]))
+            if hyper is not None and redo and any(not self.path_of[m].exists() for m in queue[i:]):
+                hyper = self.enrich(redo, basis_members, basis_records)
             for m in batch:
-                path_of[m].with_suffix(".lock").unlink(missing_ok=r.parallel)
-            tick()
-        share(left if r.parallel else [])
-    records = wait_for(spans)
-    if records is None:
-        if bar is not None:
-            bar.close()
-        return run_forward(config, run_dir, progress)
-    for spent in chunks_dir.glob("batch_*.partial.npz"):  # every member is saved: checkpoints of batches an
-        spent.unlink(missing_ok=True)  # earlier stopped run shared out otherwise (other ranks, workers) are spent
-    if bar is not None:
-        bar.update(bar.total - bar.n)
-        bar.close()
-    Y_steps = np.concatenate([r["Y"] for r in records])  # (N, S, P, 2) at the load steps
-    times = frame_times(config.frames)
-    # pressure ramps linearly in normalized time: load factor = t; u = 0 at t = 0
-    Y0 = np.zeros_like(Y_steps[:, :1])
-    Y_fe = interpolate_in_time(np.concatenate([[0.0], load]), np.concatenate([Y0, Y_steps], axis=1), times, axis=1)
-    cat = {k: np.concatenate([r[k] for r in records]) for k in
-           ("status", "load_reached", "iterations", "increments", "cutbacks", "last_residual", "u_last")}
-    n_of = [r["status"].size for r in records]
-    cat["method"] = np.concatenate([r.get("method", np.array(["full"] * n)) for r, n in zip(records, n_of)])
-    cat["error_estimate"] = np.concatenate([r.get("error_estimate", np.full(n, np.nan))
-                                            for r, n in zip(records, n_of)])
-    timings: dict[str, float] = {}
-    for r in records:
-        for k, v in r["timings"].items():
-            timings[k] = timings.get(k, 0.0) + v
-    return {
-        "model": model, "info": info, "operator": operator, "params": params, "load_factors": load,
-        "times": times, "pressure": config.pressure * times, "Y_fe": Y_fe, "Y_steps": Y_steps,
-        "history": [h for r in records for h in r["history"]], "timings": timings,
-        "wall_s": time.perf_counter() - t0, **cat,
-    }
+                self.path_of[m].with_suffix(".lock").unlink(missing_ok=self.r.parallel)
+            self.tick()
+        self.share(left if self.r.parallel else [])
+
+    def gather(self, records) -> dict:
+        """Step 3: every member's records into the run's outputs, observed at the frame times."""
+        config, load = self.config, self.load
+        for spent in self.chunks_dir.glob("batch_*.partial.npz"):  # every member is saved: checkpoints of
+            spent.unlink(missing_ok=True)  # batches an earlier stopped run shared out (other ranks, workers) are spent
+        if self.bar is not None:
+            self.bar.update(self.bar.total - self.bar.n)
+            self.bar.close()
+        Y_steps = np.concatenate([r["Y"] for r in records])  # (N, S, P, 2) at the load steps
+        times = frame_times(config.frames)
+        # pressure ramps linearly in normalized time: load factor = t; u = 0 at t = 0
+        Y0 = np.zeros_like(Y_steps[:, :1])
+        Y_fe = interpolate_in_time(np.concatenate([[0.0], load]), np.concatenate([Y0, Y_steps], axis=1), times,
+                                   axis=1)
+        cat = {k: np.concatenate([r[k] for r in records]) for k in
+               ("status", "load_reached", "iterations", "increments", "cutbacks", "last_residual", "u_last")}
+        n_of = [r["status"].size for r in records]
+        cat["method"] = np.concatenate([r.get("method", np.array(["full"] * n)) for r, n in zip(records, n_of)])
+        cat["error_estimate"] = np.concatenate([r.get("error_estimate", np.full(n, np.nan))
+                                                for r, n in zip(records, n_of)])
+        timings: dict[str, float] = {}
+        for r in records:
+            for k, v in r["timings"].items():
+                timings[k] = timings.get(k, 0.0) + v
+        return {
+            "model": self.model, "info": self.info, "operator": self.operator, "params": self.params,
+            "load_factors": load, "times": times, "pressure": config.pressure * times, "Y_fe": Y_fe,
+            "Y_steps": Y_steps, "history": [h for r in records for h in r["history"]], "timings": timings,
+            "wall_s": time.perf_counter() - self.t0, **cat,
+        }
 
 
 # -- the forward run a calibration shares ------------------------------------------------------------
