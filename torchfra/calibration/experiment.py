@@ -14,6 +14,7 @@ a frame whose pressure exceeds the forward's is refused (rerun the forward with 
 """
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 
@@ -22,7 +23,7 @@ import torch
 
 from torchfra import fem
 from torchfra.assimilation.filters import PolynomialSlave
-from torchfra.calibration.config import CalibrationConfig
+from torchfra.calibration.config import CalibrationConfig, config_dict
 from torchfra.calibration.coverage import coverage_study
 from torchfra.calibration.exact import ExactReference
 from torchfra.calibration.forward import forward_config, forward_dir, parameter_set
@@ -190,3 +191,123 @@ def _direct_fe_check(config, run_dir: Path, out: dict, rec: Recording, lam, trac
                   "spline_minus_fe_mm": (spline - fe[j]).tolist(), "frame": int(rec.frames[k_top])}
     return res
 
+
+
+# --- the headline of a calibration's summary.json -------------------------------------------------------------
+
+# below these, the filters' answers are not to be trusted, whatever they say (see docs/calibration.md#the-headline)
+TRUSTED_MEMBERS = 20  # ensemble members: the sample covariances of Eqs. 21-23 need tens of them
+PRIOR_OUTSIDE_GRID = 0.01  # prior mass outside the members' span, where the exact posterior's map extrapolates
+EXACT_STDS_OFF = 3.0  # a filter's mean this many exact posterior stds from the exact mean disagrees with it
+HIERARCHICAL = ("hierarchical", "hierarchical_nonlinear", "restart")
+
+
+def rounded(mean: float, std: float) -> str:
+    """``mean +- std`` with the std to two significant digits and the mean to the same decimal place.
+
+    Examples
+    --------
+    >>> rounded(0.00480012, 1.234e-5)
+    '0.004800 +- 0.000012'
+    """
+    if not (math.isfinite(mean) and math.isfinite(std)) or std <= 0:
+        return f"{mean:.6g} +- {std:.2g}"
+    place = max(0, 1 - math.floor(math.log10(std)))  # decimals that keep two significant digits of std
+    if place > 12:
+        return f"{mean:.3e} +- {std:.2e}"
+    return f"{mean:.{place}f} +- {std:.{place}f}"
+
+
+def headline(summary: dict) -> dict:
+    """How sure a calibration is, in one line and its parts: each parameter's exact posterior (mean +- std
+    in its unit), the filter to report (the one nearest the exact posterior on its frames) with its
+    distance from it in exact stds, and the reasons not to trust the filters (too few members, prior mass
+    outside the exact posterior's grid, every filter more than 3 exact stds off, a data-fit refusal).
+
+    Parameters
+    ----------
+    summary : dict
+        A calibration's ``summary.json`` as :func:`torchfra.report.calibration.write_calibration_outputs`
+        writes it.
+
+    Returns
+    -------
+    dict
+        ``text`` (the line), ``exact`` (per parameter: mean, std, unit), ``report`` (a filter's name or None),
+        ``agreement_in_exact_stds`` (per filter: the largest distance over the parameters), ``trusted``,
+        ``warnings`` (why the run is not to be trusted) and ``notes`` (filters too far off to report).
+    """
+    names = summary["parameters"]
+    rows, comp = summary["filters"], summary.get("comparison", {})
+    units = {p: summary.get("prior", {}).get(p, {}).get("unit", "") for p in names}
+    exact = {p: {"mean": rows["exact"][p]["mean"], "std": rows["exact"][p]["std"], "unit": units[p]} for p in names}
+
+    def distance(name):
+        c = comp.get(name, {})
+        per = [c] if len(names) == 1 else [c.get(p, {}) for p in names]
+        d = [abs(x["distance_from_exact_mean_in_exact_stds"]) for x in per
+             if x.get("distance_from_exact_mean_in_exact_stds") is not None]
+        return max(d) if d else None
+
+    agree = {n: distance(n) for n in HIERARCHICAL if n in rows and distance(n) is not None}
+    report = min(agree, key=agree.get) if agree else None
+    warnings = []
+    fit = summary.get("data_fit", {"ok": True})
+    if not fit.get("ok", True):
+        warnings.append("no calibration result: the data do not fit the model and prior (" + "; ".join(
+            fit.get("reasons", [])) + ")")
+    members = summary.get("members_in_hierarchical_filters", summary.get("members", 0))
+    outside = rows["exact"].get("prior_mass_outside_grid", 0.0) or 0.0
+    if members < TRUSTED_MEMBERS:
+        warnings.append(f"{members} members are too few for the filters to be trusted (at least {TRUSTED_MEMBERS}: "
+                        "their sample covariances need tens of members); rerun with --members 100")
+    if outside > PRIOR_OUTSIDE_GRID:
+        warnings.append(f"{100 * outside:.1f} % of the prior lies outside the members' span, where the exact "
+                        "posterior extrapolates the FE map; use more --members")
+    off = {n: d for n, d in agree.items() if d > EXACT_STDS_OFF}
+    notes = []
+    if agree and len(off) == len(agree):
+        warnings.append("every filter is more than 3 exact stds from the exact posterior ("
+                        + ", ".join(f"{n} {d:.1f}" for n, d in off.items()) + "): report the exact posterior")
+    elif off:
+        notes.append(", ".join(f"{n} {d:.1f}" for n, d in off.items()) + " exact stds off: not to be reported")
+    parts = [f"{p} = {rounded(e['mean'], e['std'])} {e['unit']}".rstrip() for p, e in exact.items()]
+    text = "; ".join(parts) + " (exact posterior)"
+    if report is not None:
+        text += f"; filter to report: {report}, {agree[report]:.2f} exact stds from it"
+    text += "".join(f"; {n}" for n in notes)
+    if warnings:
+        text += "; NOT TRUSTED: " + "; ".join(warnings)
+    return {"text": text, "exact": exact, "report": report, "agreement_in_exact_stds": agree,
+            "trusted": not warnings, "warnings": warnings, "notes": notes}
+
+
+def applicable_config(config: CalibrationConfig, synthetic: bool, fibers: bool = True) -> dict:
+    """The settings a run used, without those that do not apply to it: a recording file's run has no
+    synthetic-recording settings (truth, noise seed, points, frames, coverage study), a deck's no actuator
+    settings, a model without fibers no fiber stiffness.
+
+    Parameters
+    ----------
+    config : CalibrationConfig
+        The run's settings.
+    synthetic : bool
+        Whether the recording was made by the run (``config.recording`` None).
+    fibers : bool
+        Whether the model has fibers (a deck may not).
+
+    Returns
+    -------
+    dict
+        The JSON-ready settings.
+    """
+    out = config_dict(config)
+    if not synthetic:
+        for k in ("truth_c10", "truth", "noise_seed", "points", "frames", "coverage_seeds"):
+            out.pop(k, None)
+    if not config.inp:
+        for k in ("inp", "camera", "face"):
+            out.pop(k, None)
+    if not fibers:
+        out["fixed"] = [f for f in out.get("fixed", []) if not f.split("=")[0].strip().startswith("E_fiber")]
+    return out

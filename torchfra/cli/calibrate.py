@@ -39,6 +39,7 @@ from torchfra.cli.run import add_deck_flags, check_deck_flags
 from torchfra.io.dic.importer import add_arguments
 
 CONFIGS = ("seed",)  # named configs: torchfra.calibration.config.SEED
+EXIT_NO_RESULT = 3  # the recording does not fit the model and prior: no calibration result (a wrong input is 2)
 
 
 def _free_port() -> int:
@@ -175,6 +176,39 @@ def build_parser():
     return p
 
 
+def _noise(config, given: float | None):
+    """The noise the filters assume and where it came from: ``--noise``, the synthetic recording's, or,
+    for a recording file without ``--noise``, estimated from its frames as the diagnosis does
+    (:func:`torchfra.observation.noise.estimate_noise`); said on stdout.
+
+    Returns
+    -------
+    config : CalibrationConfig
+        With ``noise`` set to the estimate when one was made.
+    noise : dict
+        ``sigma_mm``, ``source`` and, when estimated, the correlation length seen and the frames left out.
+    """
+    if given is not None:
+        print(f"noise: {config.noise:g} mm per component, given by --noise", flush=True)
+        return config, {"sigma_mm": config.noise, "source": "given (--noise)"}
+    if config.recording is None:
+        print(f"noise: {config.noise:g} mm per component, the synthetic recording's", flush=True)
+        return config, {"sigma_mm": config.noise, "source": "the synthetic recording's"}
+    from torchfra.io.recordings import read_recording
+    from torchfra.observation.noise import estimate_noise
+
+    nm = estimate_noise(read_recording(config.recording), give="give --noise SIGMA (mm)")
+    noise = {"sigma_mm": nm.sigma, "source": "estimated from the recording's frames (second differences in time, "
+             "as torchfra diagnose does)", "correlation_length_mm": nm.ell,
+             "frames_left_out": nm.estimated["frames_left_out"]}
+    print(f"noise: {nm.sigma:.3g} mm per component, estimated from the recording's frames (give --noise to set it)",
+          flush=True)
+    if nm.ell > 0:
+        print(f"note: the noise looks correlated in space over {nm.ell:.3g} mm; the filters and the exact posterior "
+              "assume independent noise, so their spreads may be too narrow", flush=True)
+    return replace(config, noise=nm.sigma), noise
+
+
 def _looks_like_a_number(text) -> bool:
     try:
         float(text)
@@ -199,7 +233,7 @@ def main(argv=None) -> dict | int:
     import torch
 
     from torchfra.calibration.config import CalibrationConfig, ForwardConfig
-    from torchfra.calibration.experiment import run_calibration
+    from torchfra.calibration.experiment import applicable_config, headline, run_calibration
     from torchfra.calibration.forward import forward_config, forward_dir, observed_surface, run_forward
     from torchfra.calibration.frames import validate_recording
     from torchfra.calibration.priors import parse_truth
@@ -258,6 +292,7 @@ def main(argv=None) -> dict | int:
         config = replace(config, restart=False)
     t0 = time.perf_counter()
     validate_recording(config)  # refuse a bad file before any FE work or helper process
+    config, noise = _noise(config, a.noise)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # run the cleanup below when killed politely
     if r.parallel:  # torchrun started the ranks
         service = RestartRanks(r) if config.restart else None
@@ -272,22 +307,49 @@ def main(argv=None) -> dict | int:
             out = run_calibration(config, run_dir, restart_threads=a.threads if service else max(a.threads, a.workers),
                                   restart_ranks=service)
     summary = write_calibration_outputs(out, run_dir, time.perf_counter() - t0)
+    summary["noise"] = noise
+    summary["config"] = applicable_config(config, synthetic=config.recording is None)
+    summary["headline"] = headline(summary)
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     fit = summary.get("data_fit", {"ok": True})
     if not fit["ok"]:  # flagged, never reported as a result
         print("the data do not fit the model/prior; no calibration result:\n- " + "\n- ".join(fit["reasons"])
               + f"\n(the filters' outputs are in {run_dir} for inspection only)", file=sys.stderr)
-        print(json.dumps({"result": None, "data_fit": fit, "run": str(run_dir)}, indent=1))
-        return summary
+        return EXIT_NO_RESULT
     for name, row in summary["filters"].items():  # frames the filter's forecasts do not explain
         flags = row.get("innovation_flags", {}).get("frames", [])
         if flags:
             print(f"innovation check, {name}: {len(flags)} of {row['frames_assimilated']} frames outside the 99.99 % "
-                  f"band of the normalized innovation, the first at frame index {flags[0]} (summary.json innovation_flags): the "
-                  "filter's forecasts, with their spread and the noise, do not explain the recording there",
-                  file=sys.stderr)
-    print(json.dumps({"filters": {k: {p: v[p] for p in summary["parameters"]} for k, v in summary["filters"].items()},
-                      "truth": summary["truth"], "run": str(run_dir)}, indent=1))
+                  f"band of the normalized innovation, the first at frame index {flags[0]} (summary.json "
+                  "innovation_flags): the filter's forecasts, with their spread and the noise, do not explain the "
+                  "recording there", file=sys.stderr)
+    print(result_lines(summary, run_dir))
     return summary
+
+
+def result_lines(summary: dict, run_dir) -> str:
+    """The posteriors as lines: per parameter (name and unit) each filter's mean +- std, rounded to the
+    digits its std supports, with its distance from the exact posterior; the truth; the headline."""
+    from torchfra.calibration.experiment import rounded
+    from torchfra.report.calibration import LABELS
+
+    lines = []
+    comp = summary.get("comparison", {})
+    one = len(summary["parameters"]) == 1
+    for p in summary["parameters"]:
+        unit = summary.get("prior", {}).get(p, {}).get("unit", "")
+        lines.append(f"{p}" + (f" ({unit})" if unit else "") + ":")
+        for name, row in summary["filters"].items():
+            c = comp.get(name, {}) if one else comp.get(name, {}).get(p, {})
+            d = c.get("distance_from_exact_mean_in_exact_stds")
+            off = "" if name == "exact" or d is None else f"   {d:+.2f} exact stds from the exact mean"
+            lines.append(f"  {LABELS.get(name, name):<36} {rounded(row[p]['mean'], row[p]['std'])}{off}")
+        truth = (summary.get("truth") or {}).get(p)
+        if truth is not None:
+            lines.append(f"  {'truth':<36} {truth:g}")
+    lines.append(f"headline: {summary['headline']['text']}")
+    lines.append(f"run: {run_dir} (summary.json)")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

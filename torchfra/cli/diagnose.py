@@ -67,6 +67,7 @@ def main(argv=None) -> dict:
     from torchfra.diagnosis.pipeline import ALL_CANDIDATES, diagnose
     from torchfra.io.dic.importer import recording_path
     from torchfra.io.recordings import read_recording
+    from torchfra.observation.noise import NoiseEstimateError, check_motion
 
     torch.set_num_threads(a.threads)
     cands = "all" if a.candidates == "all" else [c.strip() for c in a.candidates.split(",") if c.strip()]
@@ -92,6 +93,10 @@ def main(argv=None) -> dict:
         deck.values()  # a missing or unreadable deck is refused here, before any work
     face = observed_surface(ForwardConfig(inp=a.inp, camera=a.camera, face=a.face or "")) if a.inp else None
     rec = read_recording(recording_path(a.recording, a, run_dir, face))
+    try:
+        check_motion(rec)  # a recording without motion has nothing to diagnose (and no noise to estimate)
+    except NoiseEstimateError as exc:
+        raise DiagnosisError(str(exc)) from None
     reused = len(list((run_dir / "solves").glob("solve_*.npz"))) if (run_dir / "solves").exists() else 0
     if reused and not a.quiet:
         print(f"resuming {run_dir}: {reused} FE solves on disk are reused")

@@ -72,8 +72,10 @@ def comparisons(out: dict, rows: dict) -> dict:
         for p in pset.names:
             ref, c = ref_all[p], row[p]
             d = {"exact_mean_same_frames": ref["mean"], "exact_std_same_frames": ref["std"],
-                 "distance_from_exact_mean_in_exact_stds": (c["mean"] - ref["mean"]) / ref["std"],
-                 "spread_ratio_to_exact": c["std"] / ref["std"],
+                 # None: the exact posterior collapsed onto one grid cell (a recording the model cannot fit)
+                 "distance_from_exact_mean_in_exact_stds": (c["mean"] - ref["mean"]) / ref["std"] if ref["std"] > 0
+                 else None,
+                 "spread_ratio_to_exact": c["std"] / ref["std"] if ref["std"] > 0 else None,
                  "exact_log_evidence_same_frames": post.log_evidence, "exact_same_frames": ref}
             if out["truth"] is not None:
                 d["error_from_truth_percent"] = 100 * (c["mean"] - out["truth"][p]) / out["truth"][p] \
