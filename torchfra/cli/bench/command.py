@@ -11,20 +11,22 @@ import os
 import time
 import warnings
 
+from torchfra.cli.flags import Formatter, add_resolution
+
 DESCRIPTION = "Benchmarks of the finite element core on Hex20 box meshes, for one member and for an ensemble."
 SUITES = ("device", "ensemble", "fem", "forward", "sensitivity")  # a module of torchfra.cli.bench each
 
 
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=DESCRIPTION)
-    parser.add_argument("--suite", choices=sorted(SUITES), required=True)
+    parser = argparse.ArgumentParser(description=DESCRIPTION, formatter_class=Formatter)
+    parser.add_argument("--suite", choices=sorted(SUITES), required=True, help="the benchmark suite to run")
     parser.add_argument("--out", help="also write the JSON to this file")
     parser.add_argument("--threads", type=int, default=1, help="torch and MKL (PARDISO) threads (default 1)")
     parser.add_argument("--quick", action="store_true", help="tiny meshes and ensembles: a smoke test, < 1 min")
     parser.add_argument("--meshes", help="divisions to run instead of the suite's, e.g. 8x8x16,16x16x16")
     parser.add_argument("--members", help="fem: member counts instead of the suite's, e.g. 1,100 (1 must come "
                         "first); forward: the ensemble size M (default 100)")
-    parser.add_argument("--mesh", type=int, default=1, help="forward: actuator mesh resolution (default 1)")
+    add_resolution(parser, what="the forward suite's actuator")
     parser.add_argument("--load-steps", type=int, default=None,
                         help="forward: output load factors (default 20; 5 with --quick)")
     parser.add_argument("--old-members", type=int, help="ensemble: members solved by the old path too (default all)")
@@ -34,6 +36,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--chunk-budget-s", type=float, help="time budget of one member-chunked measurement")
     parser.add_argument("--superlu-max-unknowns", type=int, help="skip SuperLU on larger systems")
     args = parser.parse_args(argv)
+    args.mesh = args.resolution  # the suites' name for it
 
     import torch
 
