@@ -75,13 +75,16 @@ def test_devices_and_fifos_are_refused_by_the_reading_layer(tmp_path):
     ("SECRET-1234\n".encode("utf-16"), "UTF-16 text"),
     (b"SECRET-1234\x00\x00", "NUL bytes: a binary file, not deck text"),
     ("SECRET-\xb5\n".encode("latin-1"), "byte 0xb5 at column 8 is not utf-8 text"),
-], ids=["integer", "number", "utf16", "binary", "latin1"])
+    (b"SECRET-1234\n", "node set \\(a name in an included file, not shown\\) is not defined"),
+], ids=["integer", "number", "utf16", "binary", "latin1", "set-name"])
 def test_an_included_files_text_is_never_quoted(tmp_path, content, match):
     """The included file may be no deck at all (a key, a password file): a message names it and its
     line, never its text."""
     (tmp_path / "inc.txt").write_bytes(content)
     text = HAND_DECK
-    if b"Material" in content:
+    if content == b"SECRET-1234\n":  # a data line of the *NSET card before the *INCLUDE: a set name
+        text = text.replace("*Nset, nset=Tip, generate\n301, 308\n", "*Nset, nset=Tip\n*Include, input=inc.txt\n")
+    elif b"Material" in content:
         text = text.replace(MATERIAL, "*Include, input=inc.txt\n")
     else:  # data lines of an included file go on the card before the *INCLUDE (a *NODE here)
         text = text.replace("*node\n", "*node\n*Include, input=inc.txt\n", 1)

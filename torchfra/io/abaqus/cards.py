@@ -139,6 +139,12 @@ def _shown(card: _Card, line: _Line | None, text: str) -> str:
     return "(text of an included file, not shown)" if where.included else repr(text)
 
 
+def _label(card: _Card, line: _Line | None, name: str) -> str:
+    """A name read from a data line, for a message; not shown when the line comes from an included file."""
+    where = line if line is not None else card
+    return "(a name in an included file, not shown)" if where.included else name
+
+
 def _int(card: _Card, line: _Line | None, text: str, what: str) -> int:
     try:
         return int(text)

@@ -101,7 +101,7 @@ from torchfra.fem.pressure import CavityPressure, FollowerPressure, check_closed
 from torchfra.fem.solid import Hex20Solid
 from torchfra.fem.truss import Truss, two_node_truss
 from torchfra.io.abaqus.assembly import Scope, read_cards
-from torchfra.io.abaqus.cards import InpError, _Card, _cards, _float, _int, _is_int, _Line
+from torchfra.io.abaqus.cards import InpError, _Card, _cards, _float, _int, _is_int, _label, _Line
 
 __all__ = ["InpError", "InpIds", "InpNote", "read_inp"]
 
@@ -245,7 +245,8 @@ class _Reader:
                 raise card.error(f"node {text} is not defined", line)
             return [node]
         if name not in self.nsets:
-            raise card.error(f"node set {name} is not defined (known: {', '.join(sorted(self.nsets)) or 'none'})", line)
+            known = ", ".join(sorted(self.nsets)) or "none"
+            raise card.error(f"node set {_label(card, line, name)} is not defined (known: {known})", line)
         return list(self.nsets[name])
 
     def element_refs(self, card: _Card, line: _Line | None, text: str) -> list[int]:
@@ -255,9 +256,8 @@ class _Reader:
                 raise card.error(f"element {text} is not defined", line)
             return [element]
         if name not in self.elsets:
-            raise card.error(
-                f"element set {name} is not defined (known: {', '.join(sorted(self.elsets)) or 'none'})", line
-            )
+            known = ", ".join(sorted(self.elsets)) or "none"
+            raise card.error(f"element set {_label(card, line, name)} is not defined (known: {known})", line)
         return list(self.elsets[name])
 
     def amplitude_at_one(self, name: str, card: _Card, line: _Line | None) -> float:
@@ -596,7 +596,8 @@ class _Reader:
                 d = tuple(_float(card, line, f or "0", "a direction component") for f in line.fields[3:])
                 self.gravity.append((elements, magnitude, d, amp, card, line))
             else:
-                raise card.error(f"load label {label} is not supported (supported: P1..P6 on bricks, GRAV)", line)
+                shown = _label(card, line, label)
+                raise card.error(f"load label {shown} is not supported (supported: P1..P6 on bricks, GRAV)", line)
 
     def card_DSLOAD(self, card: _Card) -> None:
         card.check_params({"AMPLITUDE", "OP"})
@@ -607,7 +608,8 @@ class _Reader:
                 raise card.error("expects 'surface, P, magnitude' (only the pressure label P is supported)", line)
             name = self._global(card, line.fields[0], "element")[1] or line.fields[0].upper()
             if name not in self.surfaces:
-                raise card.error(f"surface {name} is not defined (known: {', '.join(sorted(self.surfaces)) or 'none'})",
+                known = ", ".join(sorted(self.surfaces)) or "none"
+                raise card.error(f"surface {_label(card, line, name)} is not defined (known: {known})",
                                  line)
             magnitude = _float(card, line, line.fields[2], "the magnitude")
             for e, face, _, _ in self.surfaces[name]:
