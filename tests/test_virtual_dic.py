@@ -216,3 +216,4 @@ def test_the_documented_small_command_writes_a_recording_and_its_error_budget(tm
     interior = summary["budget"]["regions"]["interior"]
     assert max(interior["rms_mm"]) < 0.5 * summary["settings"]["pixel_size"]  # under half a pixel (measured 0.04)
     assert "interior" in out.stdout and "correlation length" in out.stdout
+    assert not (tmp_path / "plotter_log.log").exists()  # pyvale's import-time log file is not left behind

@@ -16,6 +16,9 @@ displacements still run from the first reference at its subset centres).
 from __future__ import annotations
 
 import glob
+import os
+import sys
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -53,11 +56,20 @@ class EngineSettings:
 
 def require_engine():
     """``pyvale.dic``, or :class:`EngineMissing` saying how to install it."""
-    try:
-        import pyvale.dic as dic
-    except ImportError as exc:
-        raise EngineMissing(f"the DIC engine pyvale is not installed ({exc}); install the optional extra: "
-                            f"{INSTALL} (about 2 GB; in its own virtual environment if you prefer)") from None
+    if "pyvale.dic" in sys.modules:
+        return sys.modules["pyvale.dic"]
+    here = os.getcwd()
+    # importing pyvale opens a log file (plotter_log.log) in the working directory: import it from a
+    # scratch folder so that a run leaves none behind
+    with tempfile.TemporaryDirectory(prefix="torchfra_pyvale_") as scratch:
+        os.chdir(scratch)
+        try:
+            import pyvale.dic as dic
+        except ImportError as exc:
+            raise EngineMissing(f"the DIC engine pyvale is not installed ({exc}); install the optional extra: "
+                                f"{INSTALL} (about 2 GB; in its own virtual environment if you prefer)") from None
+        finally:
+            os.chdir(here)
     return dic
 
 
