@@ -43,6 +43,7 @@ rec = to_recording(series, times, pressure, placed, source="example export")
 path = write_recording(folder / "recording.csv", rec)
 
 back = read_recording(path)   # what `torchfra calibrate --recording` and `torchfra diagnose` read
-print(f"{back.n_frames} frames x {back.n_points} points, pressure {back.pressure.min():g}..{back.pressure.max():g} MPa, "
+print(f"{back.n_frames} frames x {back.n_points} points, "
+      f"pressure {back.pressure.min():g}..{back.pressure.max():g} MPa, "
       f"registration residual {placed.rms:.2g} mm")
 print(f"largest uy {np.nanmax(back.Z[..., 0]):.3f} mm at the last frame; wrote {path}")

@@ -31,7 +31,8 @@ def test_calibrate_returns_the_run_folders_posteriors(calibrated):
     assert post.mean == saved["filters"]["exact"]["C10"]["mean"] and post.exact["std"] == post.std
     for name, f in post.filters.items():
         assert f["mean"] == saved["filters"][name]["C10"]["mean"]
-        assert f["distance_from_exact_in_exact_stds"] == saved["comparison"][name]["distance_from_exact_mean_in_exact_stds"]
+        comp = saved["comparison"][name]
+        assert f["distance_from_exact_in_exact_stds"] == comp["distance_from_exact_mean_in_exact_stds"]
     # the recording was made at C10 = 0.0048 with 0.05 mm of noise: the exact posterior holds it
     # within 3 of its stds (reference: the truth that made the synthetic data)
     assert abs(post.mean - 0.0048) < 3 * post.std
@@ -111,3 +112,22 @@ def test_bad_calls_are_refused_by_name_before_any_work(tmp_path):
     with pytest.raises(TypeError, match="unknown keyword 'nosie'"):
         torchfra.diagnose(tmp_path / "none.csv", nosie=1.0)
     assert not (tmp_path / "x").exists() or not any((tmp_path / "x").iterdir())
+
+
+def test_a_diagnosis_result_reads_the_stored_pressure_offset_diagnosis():
+    from pathlib import Path
+
+    from torchfra.api import DiagnosisResult
+
+    stored = json.loads((Path(__file__).parent / "data" / "diagnosis_pressure_offset.json").read_text())
+    diag = DiagnosisResult(stored, None, {}, None)
+    assert diag.decision == "pressure_sensor" and diag.to_json() == stored
+    off = diag.posterior["pressure_offset"]
+    assert (off.mean, off.std) == (stored["parameters"]["extended"]["pressure_offset"]["mean"],
+                                   stored["parameters"]["extended"]["pressure_offset"]["std"])
+    assert set(diag.posterior["C10"].filters) == {"base", "extended"} and "base" not in off.filters
+    lines = diag.summary().splitlines()
+    assert lines[0] == "decision: pressure_sensor (missing physics: pressure_sensor)"
+    assert "  pressure_offset = 0.004004 +- 5.8e-05 MPa (laplace (extended model))" in lines
+    assert lines[-1] == "8 frames, 80 points, 19 FE solves"
+    assert any(line.startswith("significant candidates: pressure_sensor (score 5.65e+03, p = 0), gravity") for line in lines)

@@ -146,13 +146,13 @@ class CalibrationResult:
         for p, post in self.posterior.items():
             unit = f" {post.unit}" if post.unit else ""
             truth = s["truth"][p] if s.get("truth") else None
-            lines.append(f"{p} = {_number(post.mean, post.std)} +- {_number(post.std)}{unit} (exact posterior"
+            lines.append(f"{p} = {_number(post.mean, post.std)} +- {post.std:.2g}{unit} (exact posterior"
                          + (f"; truth {truth:g}{unit})" if truth is not None else ")"))
             for name in FILTERS:
                 if name == "exact" or name not in post.filters:
                     continue
                 f = post.filters[name]
-                lines.append(f"  {name}: {_number(f['mean'], f['std'])} +- {_number(f['std'])}{unit}, "
+                lines.append(f"  {name}: {_number(f['mean'], f['std'])} +- {f['std']:.2g}{unit}, "
                              f"{f['distance_from_exact_in_exact_stds']:+.2f} exact stds from the exact mean, "
                              f"spread {f['spread_ratio_to_exact']:.2f}x the exact one")
         lines.append(f"{s['members']} members, {s['frames']} frames, noise {self.noise:g} mm ({self.noise_source})"
@@ -342,9 +342,9 @@ class DiagnosisResult:
         for p, row in chosen.items():
             fits = {k: {"mean": v[p]["mean"], "std": v[p]["std"]} for k, v in (("base", base), ("extended", ext))
                     if v is not None and p in v}
+            source = f"laplace ({'extended' if ext is not None else 'base'} model)"
             self.posterior[p] = ParameterPosterior(p, row.get("unit", ""), float(row["mean"]), float(row["std"]),
-                                                   "laplace (" + ("extended" if ext is not None else "base") + " model)",
-                                                   fits)
+                                                   source, fits)
 
     def summary(self) -> str:
         """The headline as text: the decision, the fit before and after, the ranking's significant
@@ -357,14 +357,16 @@ class DiagnosisResult:
         o = self._out
         mp = o["missing_physics"]
         what = {"none": "no mismatch with the base model", "unexplained": "a mismatch no candidate explains"}
-        lines = [f"decision: {o['decision']} ({what.get(o['decision'], 'missing physics: ' + str(mp.get('name', mp.get('kind'))))})",
+        named = what.get(o["decision"], f"missing physics: {mp.get('name', mp.get('kind'))}")
+        lines = [f"decision: {o['decision']} ({named})",
                  f"fit: whitened RMS {o['fit_before']['rms']:.3g} before, {o['fit_after']['rms']:.3g} after "
                  f"(1 is the noise level, sigma {o['noise']['sigma']:.3g} mm)"]
         for p, post in self.posterior.items():
-            lines.append(f"  {p} = {_number(post.mean, post.std)} +- {_number(post.std)} {post.unit} ({post.source})")
+            lines.append(f"  {p} = {_number(post.mean, post.std)} +- {post.std:.2g} {post.unit} ({post.source})")
         sig = [r for r in o["ranking"] if r["significant"]]
-        lines.append("significant candidates: " + (", ".join(f"{r['name']} (score {r['score']:.3g}, p = {r['p_value']:.2g})"
-                                                          for r in sig) or "none"))
+        lines.append("significant candidates: "
+                     + (", ".join(f"{r['name']} (score {r['score']:.3g}, p = {r['p_value']:.2g})" for r in sig)
+                        or "none"))
         skipped = {**o["not_testable"], **o["not_available"]}
         if skipped:
             lines.append("not tested: " + "; ".join(f"{k}: {v}" for k, v in skipped.items()))

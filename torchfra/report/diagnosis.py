@@ -369,7 +369,8 @@ def write_figures(run_dir: Path, rec, out: dict, base, extended, sigma: float, w
                    run_dir / "residual_map.png")
         worst = np.argsort(-rms_b)[:3]
         log_figure(writer, "diagnosis/residual_over_time",
-                   residual_over_time_figure(rec, raw_b, raw_a, worst, out["onset"]), run_dir / "residual_over_time.png")
+                   residual_over_time_figure(rec, raw_b, raw_a, worst, out["onset"]),
+                   run_dir / "residual_over_time.png")
         log_figure(writer, "diagnosis/ranking", ranking_figure(out), run_dir / "ranking.png")
         log_figure(writer, "diagnosis/observed_vs_models",
                    observed_vs_models_figure(rec, rec.Z, base.evaluation.Y,
