@@ -199,6 +199,11 @@ def read_frame(path, fmt: str = "auto", *, scale=None, units=None) -> DicFrame:
                        f"{expected_columns(layouts)}")
     h, cells, delim, lay = found
     names = [name_unit(c)[0] for c in cells]
+    numeric = [c for c in names if c and _is_number(c)]
+    if numeric:  # a header holding numbers: a data row joined to it (its values would be lost as column names)
+        raise DicError(f"{path}, line {h + 1}: the header holds numbers ({', '.join(numeric[:4])}"
+                       f"{', ...' if len(numeric) > 4 else ''}) among its column names; is a row joined to it? "
+                       "Put the header on a line of its own")
     col = {n: i for i, n in reversed(list(enumerate(names)))}
     wanted = dict(lay.columns)
     extras = dict(sigma=lay.sigma, ident=lay.ident, **dict(zip(("key0", "key1"), lay.keys or ())))
