@@ -5,7 +5,9 @@ z = 0 and bent in y by a follower pressure on its face y = 0, written by ``write
 by ``read_inp``; the camera looks from +x. Recordings: 10 frames of a pressure ramp observed at 30
 points of the face x = 4 that are not mesh nodes, noise 0.005 mm, made by the deck's model itself:
 - with its weight concealed (density 1e-9 t/mm^3 pulling along -x, out of the bending plane: the
-  camera sees it in uz only, through the beam's rotation): the diagnosis must name ``gravity`` with
+  camera sees it in uz only, through the beam's rotation), acting before the reference image as in a
+  real recording (the points are positions on the sagged beam, the displacements measured from
+  there): the diagnosis must name ``gravity`` with
   the density within 3 posterior stds of the truth and the RMS back to the noise;
 - without it: the decision is "none".
 Candidates the deck cannot carry (a compliant base, a cavity offset) are listed as not available;
@@ -49,7 +51,7 @@ def deck(tmp_path_factory):
 def recording(deck, density, seed):
     model, values = read_inp(deck)
     if density:
-        model.add(fem.Gravity(model.mesh, direction=GRAVITY))
+        model.add(fem.Gravity(model.mesh, direction=GRAVITY, preload=True))  # before the reference image
     frames = np.arange(10)
     pressure = P_MAX * (frames + 1) / 10
     params = {k: torch.tensor([v]) for k, v in values.items()}
@@ -61,7 +63,11 @@ def recording(deck, density, seed):
     y, z = np.meshgrid(np.linspace(0.3, 3.7, 3), np.linspace(1.1, 19.3, 10))
     X = np.column_stack([np.full(y.size, 4.0), y.ravel(), z.ravel()])
     op = ObservationOperator(mesh, visible_faces(mesh, (1.0, 0.0, 0.0)), points=X)
-    clean = op(sol.u[0, :, : mesh.n_nodes]).numpy()
+    u = sol.u[0, :, : mesh.n_nodes]
+    if sol.u_reference is not None:  # as DIC sees it: from the sagged reference image, at the points there
+        u_ref = sol.u_reference[0, : mesh.n_nodes]
+        u, X = u - u_ref, op.points + op.weights @ u_ref.numpy()
+    clean = op(u).numpy()
     noisy = clean + SIGMA * np.random.default_rng(seed).standard_normal(clean.shape)
     return Recording(frames, frames / 10.0, pressure, np.arange(len(X)), X, noisy, "beam recording")
 

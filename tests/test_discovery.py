@@ -303,7 +303,7 @@ def test_diagnosis_names_a_pressure_offset_and_resumes_without_solving(offset_re
     # is tested by test_refit_finds_a_term_that_switches_on_far_from_its_null and
     # test_decision_names_every_extension_the_data_cannot_tell_apart)
     out = diagnose(offset_recording, noise=0.3, correlation=0.0, candidates=["pressure_sensor", "gravity"], mesh_error=False,
-                   run_dir=tmp_path / "d", progress=False, load_steps=6, max_refits=1)
+                   run_dir=tmp_path / "d", progress=False, load_steps=6, max_refits=1, weight="with_load")
     assert out["mismatch_detected"]["detected"]
     assert out["decision"] == "pressure_sensor", (out["decision"], out["tried"])
     assert out["missing_physics"] == {"kind": "candidate", "name": "pressure_sensor"}
@@ -317,7 +317,8 @@ def test_diagnosis_names_a_pressure_offset_and_resumes_without_solving(offset_re
     assert out["noise"]["model_floor"]["below"] is False  # the model's own recording: no error of its own
     assert "mesh_error=False" in out["noise"]["model_floor"]["why"]
     # the whole diagnosis.json, field for field, as the code before the package's restructuring wrote it
-    # (tests/data/diagnosis_pressure_offset.json; wall times aside)
+    # (tests/data/diagnosis_pressure_offset.json; wall times aside), with the weight ramped with the load
+    # as it was then (model.weight "with_load", the one field added since)
     written = json.loads((tmp_path / "d" / "diagnosis.json").read_text())
     assert_same_json(written, json.loads((DATA / "diagnosis_pressure_offset.json").read_text()))
 
@@ -327,7 +328,7 @@ def test_diagnosis_names_a_pressure_offset_and_resumes_without_solving(offset_re
     monkeypatch.setattr(fem, "solve", no_solve)
     monkeypatch.setattr("torchfra.diagnosis.model.fem.solve", no_solve)
     again = diagnose(offset_recording, noise=0.3, correlation=0.0, candidates=["pressure_sensor", "gravity"], mesh_error=False,
-                     run_dir=tmp_path / "d", progress=False, load_steps=6, max_refits=1)
+                     run_dir=tmp_path / "d", progress=False, load_steps=6, max_refits=1, weight="with_load")
     assert again["decision"] == out["decision"]
 
 

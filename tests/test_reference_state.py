@@ -11,7 +11,6 @@ final state is the same equilibrium whichever path reaches it) and CalculiX 2.20
 1e-5 relative tolerance of the other CalculiX cross-checks (tests/test_candidates_calculix.py).
 """
 import numpy as np
-import pytest
 import torch
 
 from torchfra import fem
@@ -104,3 +103,49 @@ def test_two_step_deck_matches_calculix(tmp_path):
           f"{np.abs(d_torch).max():.3g} mm")
     assert np.abs(u_ref).max() > 1.0 and np.abs(d_torch).max() > 1.0
     assert rel_ref < 1e-5 and rel < 1e-5  # measured 3.3e-7 of 1.31 mm and 6.0e-6 of 5.29 mm
+
+
+def test_diagnosis_sees_the_weight_from_the_settled_state_with_exact_sensitivities():
+    """The diagnosis's gravity candidate with the weight before the reference image: a recording made
+    that way (points in the reference image, displacements from the sagged state) is reproduced at the
+    truth, and dY/dz (implicit differentiation plus the points' motion with the settled state) equals
+    central differences of Y. Reference: central differences (error O(h^2), measured below)."""
+    from torchfra.diagnosis.model import ActuatorPhysics
+    from torchfra.observation.recording import Recording
+    from torchfra.scenarios import clean_observations
+
+    c10, density = 0.0062, 4e-10
+    arrays, _ = clean_observations("gravity", density, c10, 1, 2.0, 3, "ramp", cache_dir=None)
+    grid, _ = clean_observations("none", 0.0, c10, 1, 2.0, 3, "ramp", cache_dir=None)
+    shift = np.abs(arrays["points"] - grid["points"]).max()
+    assert shift > 0.5  # the points of the reference image sit on the sagged body (mm)
+    rec = Recording(np.arange(3), arrays["times"], arrays["recorded"], np.arange(len(arrays["points"])),
+                    arrays["points"], arrays["clean"])
+    phys = ActuatorPhysics(rec, ("gravity",), 1, 4)
+    assert phys.settles
+    z = {"C10": float(np.log(c10)), "density": density}
+    ev = phys.observe(z)
+    assert ev.ok
+    scale = np.abs(rec.Z).max()
+    assert np.abs(ev.Y - rec.Z).max() < 2e-3 * scale  # the recording at its truth (load steps' Hermite error)
+    # at the solve's own load steps (the frames' interpolation in the load factor left out)
+    fe = {k: z[k] for k in phys.fe_names}
+    u, du_dlam, du, *_ = phys._solve_nodal(fe)
+    _, _, J = phys._seen(u, du_dlam, du)
+    for name, h in (("density", 5e-12), ("C10", 1e-3)):  # at 2e-11 the truncation error of the difference is 1e-2
+        i = phys.fe_names.index(name)
+        plus, minus = ({**fe, name: fe[name] + s} for s in (h, -h))
+        Yp, Ym = (phys._seen(*phys._solve_nodal(p, values_only=True)[:2], None)[0] for p in (plus, minus))
+        fd = (Yp - Ym) / (2 * h)
+        err = np.abs(J[..., i] - fd).max() / np.abs(fd).max()
+        print(f"dY/d{name}: max |J - central difference| / max |fd| = {err:.2e}")
+        assert err < 1e-4  # measured 1.7e-5 (density, h = 5e-12) and 5.2e-7 (log C10)
+    # the points' own motion with the settled state is part of dY/d density: without it J is off
+    from torchfra.observation.operator import SettledPoints
+
+    pts = SettledPoints(phys.op, phys.mesh.nodes + u[0, : phys.mesh.n_nodes], rec.X)
+    i = phys.fe_names.index("density")
+    moving = pts.moving_term(u - u[:1], du[0])[..., i]
+    still = pts.observe(du - du[:1])[..., i]
+    print(f"moving-point term: {np.abs(moving).max() / np.abs(still).max():.3f} of the rest")
+    assert np.abs(moving).max() > 0.05 * np.abs(still).max()  # measured 1.44 times the rest

@@ -45,15 +45,21 @@ def test_null_is_the_base_model_at_the_same_points(null):
     np.testing.assert_allclose(rec.pressure, 0.022 * np.arange(1, 4) / 3)
 
 
-def test_effect_differs_from_the_null_by_the_snr_meta_reports(null, gravity):
+def test_effect_differs_from_the_null_by_the_snr_meta_reports(null, gravity, cache):
+    """The weight acts before the reference image: the recording's points are where the sagged body puts
+    them, and its SNR is against the base model seen at those same points (one solve of its own)."""
     _, clean0, _ = null
     rec, clean, meta = gravity
-    assert meta["solves"] == 1  # the null's clean observations came from the cache
+    assert meta["solves"] == 2  # the effect, and the null at the recording's (sagged) points
     assert meta["parameters"]["density"] == scenarios.EFFECTS["gravity"].sizes[1] > 0
-    snr = np.linalg.norm(clean - clean0) / 0.5
+    moved = np.linalg.norm(rec.X - null[0].X, axis=1)
+    assert moved.max() > 0.1  # mm: the reference image's points sit on the sagged body
+    base, solves = scenarios.clean_observations("none", 0.0, FAST["truth_c10"], FAST["resolution"], 2.0,
+                                                FAST["frames"], "ramp", cache_dir=cache, points=rec.X)
+    assert solves == 0  # kept by make_scenario
+    snr = np.linalg.norm(clean - base["clean"]) / 0.5
     assert snr > 1.0
     assert meta["snr"] == pytest.approx(snr, rel=1e-12)
-    np.testing.assert_array_equal(rec.X, null[0].X)
 
 
 def test_noise_statistics_iid(null, gravity):
@@ -227,7 +233,7 @@ def test_a_calculix_scenario_without_a_cache_leaves_no_deck_behind(tmp_path, mon
     def solved(model, values, lam, n_nodes, deck_dir, title):
         deck_dir.mkdir(parents=True)
         (deck_dir / "scenario.inp").write_text("*HEADING\n")
-        return np.zeros((lam.size, n_nodes, 3))
+        return np.zeros((lam.size, n_nodes, 3)), None
 
     monkeypatch.setattr(generate.tempfile, "mkdtemp", mkdtemp)
     monkeypatch.setattr(generate, "_calculix_displacements", solved)

@@ -259,11 +259,13 @@ def build_flags(candidates) -> dict:
     return flags
 
 
-def actuator_model(candidates=(), resolution: int = 1, integration: str = "full", **geometry):
+def actuator_model(candidates=(), resolution: int = 1, integration: str = "full",
+                   weight: str = "before_reference", **geometry):
     """The paper's actuator at ``resolution`` with ``candidates`` switched on (each at its null exactly
-    the base model), unfinalized, and its info (:func:`build_actuator_model`)."""
+    the base model), unfinalized, and its info (:func:`build_actuator_model`). ``weight``: when the
+    ``gravity`` candidate's weight acts (:data:`torchfra.actuator.geometry.WEIGHT`)."""
     return build_actuator_model(ActuatorGeometry(resolution=resolution, **geometry), integration=integration,
-                                **build_flags(candidates))
+                                weight=weight, **build_flags(candidates))
 
 
 # The FE library's own parameter records (fem ParameterInfo: unit, null, admissible range) of each

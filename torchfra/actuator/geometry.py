@@ -417,10 +417,20 @@ def cavity_offset_field(mesh: Mesh) -> np.ndarray:
     return harmonic_field(mesh, mesh.node_set("cavity"), mesh.face_set_nodes("exterior"), (0.0, 1.0, 0.0))
 
 
+# When the body's weight acts, relative to a DIC recording's reference image
+WEIGHT = {
+    "before_reference": "the weight acts before the reference image (a real recording): the body settles under it "
+                        "first and the recording sees the pressure's displacements from the sagged state",
+    "with_load": "the weight ramps with the pressure from the unloaded body (the reference image unloaded and "
+                 "weightless): an explicit option, for recordings made that way",
+}
+
+
 def build_actuator_model(geom: ActuatorGeometry | None = None, formulation: str = "hybrid",
                          elements_per_turn: int | None = None, integration: str = "full",
                          material=None, base: str = "clamp", gravity=None, fiber_modulus="E_fiber",
-                         cavity_offset: bool = False, fibers=None, fiber_pitch: bool = False):
+                         cavity_offset: bool = False, fibers=None, fiber_pitch: bool = False,
+                         weight: str = "before_reference"):
     """The paper's actuator model (§2, §4): Neo-Hookean Hex20 body, embedded Line3 fibers, clamped
     base, rigid flat top, conservative pressure ``P`` in the closed cavity.
 
@@ -429,7 +439,8 @@ def build_actuator_model(geom: ActuatorGeometry | None = None, formulation: str 
     Candidate physics (DESIGN §1.4) switch on here, each at its null exactly the paper's model:
     ``material`` (default ``NeoHookean()``; e.g. ``MooneyRivlin()`` adds ``C01``), ``base="compliant"``
     (``ElasticSupport`` springs ``c_n``, ``c_t`` under the base instead of the clamp), ``gravity`` (a
-    direction vector: self-weight with parameter ``density``), ``fiber_modulus`` (the fibers' modulus
+    direction vector: self-weight with parameter ``density``; ``weight``, a key of :data:`WEIGHT`, says
+    whether it acts before the reference image, the default, or ramps with the load), ``fiber_modulus`` (the fibers' modulus
     parameter name, or a callable ``element centroids (m, 3) -> names (m,)`` to give fiber segments
     their own moduli, e.g. a debonded stretch), ``cavity_offset=True`` (a misplaced mould core:
     parameter ``delta_y``, mm, moves the cavity along y relative to the outer surfaces by a
@@ -458,6 +469,8 @@ def build_actuator_model(geom: ActuatorGeometry | None = None, formulation: str 
     model = fem.Model(mesh)
     if base not in ("clamp", "compliant"):
         raise ValueError(f"base must be 'clamp' or 'compliant', got {base!r}")
+    if weight not in WEIGHT:
+        raise ValueError(f"weight must be one of {sorted(WEIGHT)}, got {weight!r}")
     model.add(fem.Hex20Solid(mesh, material or fem.NeoHookean(), formulation, integration=integration))
     X_fiber, conn = fiber_mesh(geom, elements_per_turn) if fibers is None else (
         np.asarray(fibers[0], dtype=np.float64), np.asarray(fibers[1], dtype=np.int64))
@@ -474,7 +487,7 @@ def build_actuator_model(geom: ActuatorGeometry | None = None, formulation: str 
         model.embed(int(node), mesh.elements[hosts[k]], N[k])
     fem.support_face(model, "base", compliant=base == "compliant")
     if gravity is not None:
-        model.add(fem.Gravity(mesh, direction=gravity))
+        model.add(fem.Gravity(mesh, direction=gravity, preload=weight == "before_reference"))
     model.rigid("top")
     model.add(fem.CavityPressure(mesh, "cavity", pressure="P"))
     if fiber_pitch:

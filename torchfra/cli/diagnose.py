@@ -50,6 +50,10 @@ def build_parser():
     p.add_argument("--gravity", default=None, metavar="X,Y,Z",
                    help="direction of the weight in the model's frame, for the gravity candidate (default 0,-1,0: "
                         "the paper's actuator lies on its side)")
+    p.add_argument("--weight", choices=("before-reference", "with-load"), default="before-reference",
+                   help="when the gravity candidate's weight acts: before the recording's reference image (a real DIC "
+                        "recording: the body sags first, displacements are measured from there), or ramped with the "
+                        "pressure from the unloaded body (default: %(default)s)")
     return p
 
 
@@ -102,7 +106,7 @@ def main(argv=None) -> dict:
         print(f"resuming {run_dir}: {reused} FE solves on disk are reused")
     out = diagnose(rec, noise=a.noise, correlation=a.correlation, candidates=cands, run_dir=run_dir,
                    resolution=a.resolution, load_steps=a.load_steps, alpha=a.alpha, progress=not a.quiet, deck=deck,
-                   mesh_error=not a.no_mesh_error)
+                   mesh_error=not a.no_mesh_error, weight=a.weight.replace("-", "_"))
     out["threads"] = a.threads
     (run_dir / "diagnosis.json").write_text(json.dumps(out, indent=1, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
     if not a.quiet:

@@ -99,7 +99,8 @@ def _against_the_rival(ctx: RefitContext, decision: str, best: dict) -> tuple[st
     rival = [RIVALS[c] for c in best["candidates"] if c in RIVALS]
     bar, white, fit_frames = ctx.bar, ctx.white, ctx.fit_frames
     bar.phase(f"fitting the rival of {' + '.join(best['candidates'])}: {rival[0]}", bar.FIT_SOLVES + 2)
-    phys = ActuatorPhysics(ctx.rec, (rival[0],), ctx.resolution, ctx.load_steps, ctx.cache, deck=ctx.deck)
+    phys = ActuatorPhysics(ctx.rec, (rival[0],), ctx.resolution, ctx.load_steps, ctx.cache, deck=ctx.deck,
+                           weight=ctx.weight)
     free = ["C10"] + list(CANDIDATE_PARAMETERS[rival[0]])
     z0, _, _ = load_map_start(phys, white, free, free[1:], phys.null_point(ctx.c10), fit_frames)
     rfit = gauss_newton(phys, white, free, z0, fit_frames, progress=bar.tick)

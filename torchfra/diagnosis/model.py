@@ -15,6 +15,13 @@ on that frame-to-load map only (the true pressure is ``gain * recorded + offset`
 
 Parameters, their coordinates, priors and null values: the registry :mod:`torchfra.actuator.candidates`.
 
+The body's weight (the ``gravity`` candidate) acts before the reference image by default
+(``weight="before_reference"``, :data:`torchfra.actuator.geometry.WEIGHT`): the model settles under
+it first, the recording's points are positions on the settled body (located there at every parameter
+point, :class:`torchfra.observation.operator.SettledPoints`) and ``Y`` is the displacement from the
+settled state; ``dY/dz`` then carries the points' own motion with the settled state. ``"with_load"``
+ramps the weight with the pressure from the unloaded body instead.
+
 Viscoelasticity (:mod:`torchfra.actuator.history`) acts on the frame-to-load map only, like the pressure
 sensor: the body creeps, and each frame is read off the relaxed (elastic) model at its effective
 load level. Its parameters need no FE solve of their own (solves are keyed by the parameters the FE
@@ -45,10 +52,10 @@ from torchfra.actuator.candidates import (
     null_coordinate,
 )
 from torchfra.actuator.deck import DeckModel, observed_faces
-from torchfra.actuator.geometry import ActuatorGeometry, build_actuator_model
+from torchfra.actuator.geometry import WEIGHT, ActuatorGeometry, build_actuator_model
 from torchfra.actuator.history import creep_load, delayed_load, normalized_time
 from torchfra.fem.sensitivity import sensitivities
-from torchfra.observation.operator import ObservationError, ObservationOperator, visible_faces
+from torchfra.observation.operator import ObservationError, ObservationOperator, SettledPoints, visible_faces
 from torchfra.observation.recording import Recording, RecordingError
 
 
@@ -71,10 +78,15 @@ class ActuatorPhysics:
     """The actuator at ``resolution`` with ``candidates`` switched on, observed at ``rec``'s points.
 
     ``cache_dir``: where solves are kept (array-only .npz keyed by the model, the load steps and
-    the parameter point): a resumed run, or another recording with the same model, reuses them."""
+    the parameter point): a resumed run, or another recording with the same model, reuses them.
+    ``weight``: when the ``gravity`` candidate's weight acts (:data:`WEIGHT`; see the module docstring)."""
 
     def __init__(self, rec: Recording, candidates=(), resolution: int = 1, load_steps: int = 10,
-                 cache_dir: str | Path | None = None, newton: dict | None = None, deck: DeckModel | None = None):
+                 cache_dir: str | Path | None = None, newton: dict | None = None, deck: DeckModel | None = None,
+                 weight: str = "before_reference"):
+        if weight not in WEIGHT:
+            raise ValueError(f"weight must be one of {sorted(WEIGHT)}, got {weight!r}")
+        self.weight = weight
         unknown = sorted(set(candidates) - set(CANDIDATE_PARAMETERS))
         if unknown:
             raise ValueError(f"unknown candidate physics {unknown}; known: {sorted(CANDIDATE_PARAMETERS)}")
@@ -86,7 +98,7 @@ class ActuatorPhysics:
         material = fem.MooneyRivlin() if "mooney_rivlin" in self.candidates else None
         self.deck_values, self.deck_digest = (None, None) if deck is None else deck.values()
         if deck is None:
-            self.model, self.info = actuator_model(self.candidates, self.resolution)
+            self.model, self.info = actuator_model(self.candidates, self.resolution, weight=weight)
             faces = None
         else:
             self.model, self.info = self._deck_model(material)
@@ -94,11 +106,19 @@ class ActuatorPhysics:
         self.model.finalize()
         self.mesh = self.model.mesh
         faces = visible_faces(self.mesh, (1.0, 0.0, 0.0)) if faces is None else faces
+        # with the weight before the reference image, the points are positions on the settled body, which
+        # the body's own coordinates need not hold: they are checked on it (SettledPoints) once it is solved
+        self.settles = self.model.has_preload
         try:
             op = ObservationOperator(self.mesh, faces, points=rec.X, point_ids=rec.point_ids, tol=0.05)
+            W = op.weights.tocsr()
         except ObservationError as exc:
-            raise RecordingError(f"{rec.source}: {exc}") from exc
-        self.W = op.weights.tocsr()[:, :self.mesh.n_nodes] if op.weights.shape[1] > self.mesh.n_nodes else op.weights.tocsr()
+            # points off the faces in depth or just beside their outline (as a sagged reference image's are):
+            # located by what the camera sees of them, their observed (in-plane) coordinates
+            op = ObservationOperator(self.mesh, faces, points=rec.X, point_ids=rec.point_ids, tol=np.inf)
+            W = self._in_plane_weights(op, exc)
+        self.op = op
+        self.W = W[:, :self.mesh.n_nodes] if W.shape[1] > self.mesh.n_nodes else W
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self.names = ["C10"] + [p for c in self.candidates for p in CANDIDATE_PARAMETERS[c]]
         # what the FE model sees: solves are keyed and differentiated by these alone, so a candidate
@@ -107,6 +127,27 @@ class ActuatorPhysics:
         self.fe_candidates = tuple(c for c in self.candidates if c not in HISTORY_DEPENDENT_CANDIDATES)
         self._memo: dict[str, tuple] = {}
         self.steps = np.arange(1, self.load_steps + 1) / self.load_steps
+
+    # how far beside its face (in the face's natural coordinates) and off it in depth (a fraction of the
+    # observed faces' extent) a recording's point may be located by its in-plane coordinates
+    BESIDE_FACE, OFF_FACE_DEPTH = 0.5, 0.1
+
+    def _in_plane_weights(self, op: ObservationOperator, exc: ObservationError):
+        """The observation weights of the recording's points located by their observed coordinates on
+        the body as it is (:class:`SettledPoints` on the mesh's own nodes); refuses, with the operator's own
+        message ``exc``, points farther beside the faces or off them in depth than the class's limits."""
+        import scipy.sparse as sp
+
+        pts = SettledPoints(op, self.mesh.nodes, self.rec.X)
+        Xf = self.mesh.nodes[op.face_nodes]
+        extent = float(np.ptp(Xf.reshape(-1, 3), axis=0).max())
+        x = np.einsum("pa,pai->pi", pts.N, self.mesh.nodes[pts.index])
+        depth = np.linalg.norm(self.rec.X - x, axis=1)
+        bad = np.flatnonzero((pts.offset > self.BESIDE_FACE) | (depth > self.OFF_FACE_DEPTH * extent))
+        if self.settles or not bad.size:
+            rows = np.repeat(np.arange(len(pts.points)), pts.N.shape[1])
+            return sp.csr_matrix((pts.N.ravel(), (rows, pts.index.ravel())), shape=(len(pts.points), op.n_nodes))
+        raise RecordingError(f"{self.rec.source}: {exc}")
 
     def _deck_model(self, material):
         from torchfra.io.abaqus.read import read_inp
@@ -121,7 +162,7 @@ class ActuatorPhysics:
 
             with_material(model, material)
         if "gravity" in self.candidates:
-            model.add(fem.Gravity(model.mesh, direction=self.deck.gravity))
+            model.add(fem.Gravity(model.mesh, direction=self.deck.gravity, preload=self.weight == "before_reference"))
         return model, {"mesh": model.mesh, "deck": str(self.deck.path)}
 
     # -- parameters --------------------------------------------------------------------------------
@@ -224,11 +265,14 @@ class ActuatorPhysics:
                 "candidates": self.fe_candidates, "steps": self.load_steps,
                 "pmax": float(np.max(self.rec.pressure)), "newton": self.newton,
                 "z": {k: float(f"{v:.15e}") for k, v in sorted(z.items())}}
+        if "gravity" in self.fe_candidates:
+            desc["weight"] = self.weight
         return hashlib.sha256(json.dumps(desc, sort_keys=True).encode()).hexdigest()[:20]
 
     def _solve_nodal(self, z: dict[str, float], values_only: bool = False):
         """u and du/dlambda at lambda = 0, steps (S+1, n, 3) and du/dz (S+1, n, 3, d) for ``fe_names``
-        (NaN with ``values_only``); iterations. Solves are kept in memory (the last few) and in ``cache_dir``."""
+        (NaN with ``values_only``); iterations. u is measured from the unloaded body: with the weight
+        before the reference image, u[0] is the settled reference state. Solves are kept in memory (the last few) and in ``cache_dir``."""
         z = {n: float(z[n]) for n in self.fe_names}
         key = self._key(z)
         if key in self._memo:
@@ -259,10 +303,12 @@ class ActuatorPhysics:
         du_dlam = np.zeros_like(u)
         du = np.zeros((self.load_steps + 1, n, 3, d))
         if ok:
-            # the unloaded state (lambda = 0) joins the steps: its du/dlambda is the Euler velocity
+            # the reference state (lambda = 0: unloaded, or settled under the weight) joins the steps; its
+            # du/dlambda is the Euler velocity and its du/dz the settled state's own sensitivity
+            u0 = torch.zeros_like(sol.u[:, :1]) if sol.u_reference is None else sol.u_reference[:, None]
+            a0 = torch.zeros_like(sol.a[:, :1]) if sol.a_reference is None else sol.a_reference[:, None]
             sol0 = fem.Solution(np.concatenate([[0.0], sol.load_factors]),
-                                torch.cat([torch.zeros_like(sol.u[:, :1]), sol.u], 1),
-                                torch.cat([torch.zeros_like(sol.a[:, :1]), sol.a], 1), sol.status,
+                                torch.cat([u0, sol.u], 1), torch.cat([a0, sol.a], 1), sol.status,
                                 sol.load_reached, sol.iterations, sol.increments, sol.cutbacks,
                                 sol.last_residual, sol.residual_history)
             S = sensitivities(self.model, self.params_of, zt, sol0, names=[] if values_only else self.fe_names)
@@ -276,6 +322,27 @@ class ActuatorPhysics:
             tmp.replace(path)
         return u, du_dlam, du, ok, int(sol.iterations[0]), False
 
+    def _seen(self, u: np.ndarray, du_dlam: np.ndarray, du: np.ndarray | None):
+        """Y, dY/dlambda (S+1, P, 2) and dY/dz (S+1, P, 2, d) (None without ``du``) at the solve's steps:
+        at the recording's fixed points, or, with the weight before the reference image, displacements from
+        the settled state at the points located on it (their motion with the settled state in dY/dz)."""
+        if not self.settles:
+            return self._observed(u), self._observed(du_dlam), None if du is None else self._observed(du)
+        pts = SettledPoints(self.op, self.mesh.nodes + u[0, : self.mesh.n_nodes], self.rec.X)
+        far = np.flatnonzero(pts.offset > 0.05)
+        if far.size:
+            i = int(far[0])
+            raise RecordingError(
+                f"{self.rec.source}: point id {self.rec.point_ids[i]} at {np.round(self.rec.X[i], 4).tolist()} mm lies "
+                f"off the body settled under its weight ({far.size} of {self.rec.X.shape[0]} points): "
+                "the recording's points must be positions in the reference image, on the body as it sags")
+        u_rel = u - u[:1]
+        Y, dY = pts.observe(u_rel), pts.observe(du_dlam)
+        if du is None:
+            return Y, dY, None
+        J = pts.observe(du - du[:1]) + pts.moving_term(u_rel, du[0])
+        return Y, dY, J
+
     def _observed(self, field: np.ndarray) -> np.ndarray:
         """(S+1, n, 3, ...) nodal fields -> (S+1, P, 2, ...) at the recording's points (uy, uz)."""
         f = field[:, :, 1:3]
@@ -288,7 +355,8 @@ class ActuatorPhysics:
         u, du_dlam, _, ok, _, _ = self._solve_nodal(z)
         if not ok:
             return None
-        return np.concatenate([[0.0], self.steps]), self._observed(u), self._observed(du_dlam)
+        Y, dY, _ = self._seen(u, du_dlam, None)
+        return np.concatenate([[0.0], self.steps]), Y, dY
 
     def observe(self, z: dict[str, float], values_only: bool = False) -> Evaluation:
         """Y and dY/dz at the recording's frames and points for coordinates ``z`` (every name);
@@ -305,7 +373,7 @@ class ActuatorPhysics:
         if not ok:
             return Evaluation(z, list(self.names), np.full((K, P, 2), np.nan), np.full((K, P, 2, d), np.nan), False,
                               its, time.perf_counter() - t0, reused)
-        Ys, dYs, Jfe = self._observed(u), self._observed(du_dlam), self._observed(du)
+        Ys, dYs, Jfe = self._seen(u, du_dlam, du)
         Js = np.zeros(Jfe.shape[:-1] + (d,))
         Js[..., [self.names.index(n) for n in self.fe_names]] = Jfe
         zt = {k: torch.tensor([v], dtype=torch.float64) for k, v in z.items()}

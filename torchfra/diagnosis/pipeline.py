@@ -11,6 +11,7 @@ import numpy as np
 
 from torchfra.actuator.candidates import DIAGNOSIS_CANDIDATES, HISTORY_DEPENDENT_CANDIDATES
 from torchfra.actuator.deck import DeckModel
+from torchfra.actuator.geometry import WEIGHT
 from torchfra.diagnosis.decide import refit_and_decide
 from torchfra.diagnosis.fit import Fit, _initial_c10, gauss_newton
 from torchfra.diagnosis.locate import _pressure_direction, history_identifiable, hysteresis, locate
@@ -30,7 +31,7 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
              run_dir=None, resolution: int = 1, load_steps: int = 10, alpha: float = 0.01,
              evidence_threshold: float = 5.0, held_out_every: int = 5, progress: bool = True,
              max_refits: int | None = None, deck: DeckModel | None = None, fe_history: bool = True,
-             mesh_error: bool = True) -> dict:
+             mesh_error: bool = True, weight: str = "before_reference") -> dict:
     """Diagnose ``rec``: locate its mismatch with the calibrated base model, rank the candidate physics,
     refit and decide (:mod:`torchfra.diagnosis`).
 
@@ -62,6 +63,11 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
         Take the diagnosis mesh's own discretization error, estimated by one refinement, out of an
         extension's residual before the surrogate test; False only for a recording made by the
         diagnosis model itself on its own mesh (a test's inverse crime).
+    weight : {"before_reference", "with_load"}
+        When the ``gravity`` candidate's weight acts: before the recording's reference image (a real DIC
+        recording: the body settles under it first, the recording's points are positions on the sagged
+        body and its displacements are measured from there), or ramped with the pressure from the
+        unloaded body (an explicit option for recordings made that way). Recorded in ``diagnosis.json``.
 
     Returns
     -------
@@ -69,6 +75,8 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
         The diagnosis (:class:`torchfra.diagnosis.result.Diagnosis`: its fields and their meaning).
     """
     t_start = time.perf_counter()
+    if weight not in WEIGHT:
+        raise ValueError(f"weight must be one of {sorted(WEIGHT)}, got {weight!r}")
     cands, not_available = _candidates(candidates, deck)
     _check_recording(rec, held_out_every)
     run_dir = None if run_dir is None else Path(run_dir)
@@ -100,20 +108,21 @@ def diagnose(rec: Recording, noise: float | None = None, correlation: float | No
     # 2. rank: sensitivities of every candidate at the calibrated point, candidates at their null
     cands, not_testable = _testable(rec, cands)
     _, ranking, Jw, names_w, ranking_solves = score_candidates(rec, white, cands, c10, fit_frames, alpha / 2,
-                                                               resolution, load_steps, cache, deck, bar)
+                                                               resolution, load_steps, cache, deck, bar, weight)
     where["detected_by_score"] = any(r["significant"] for r in ranking)
     where["detected"] = where["detected"] or where["detected_by_score"]
 
     # 3./4. refit and decide
     base_report = _fit_report(base.fit, white, fit_frames, held, 1)
     ctx = RefitContext(rec, white, fit_frames, held, resolution, load_steps, cache, deck, ranking, Jw, names_w,
-                       base_report, c10, alpha, evidence_threshold, fe_history, mesh_error, base.taken_out, bar)
+                       base_report, c10, alpha, evidence_threshold, fe_history, mesh_error, base.taken_out, bar,
+                       weight=weight)
     verdict = refit_and_decide(ctx, where["detected"], loop, max_refits, base.phys, base.fit.z)
     bar.close()
 
     out = Diagnosis.of(rec, nm, base, where, loop, ranking, not_testable, not_available, deck, resolution, load_steps,
                        ctx.tried, verdict, base_report, ranking_solves, time.perf_counter() - t_start, held,
-                       alpha).to_json()
+                       alpha, weight).to_json()
     if run_dir is not None:
         accepted = verdict.accepted[1] if verdict.accepted else None
         write_outputs(run_dir, out, rec, raw, where, base.fit, accepted, nm.sigma, base.taken_out)

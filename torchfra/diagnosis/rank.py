@@ -130,13 +130,14 @@ def _noncentrality(crit: float, dof: int, power: float) -> float:
 
 
 def score_candidates(rec: Recording, white: Whitener, cands, c10: float, fit_frames: np.ndarray, alpha: float,
-                     resolution: int = 1, load_steps: int = 10, cache=None, deck: DeckModel | None = None, bar=None):
+                     resolution: int = 1, load_steps: int = 10, cache=None, deck: DeckModel | None = None, bar=None,
+                     weight: str = "before_reference"):
     """Step 2 of the diagnosis: the model with every candidate of ``cands`` at its null, C10 =
     ``c10``, observed with its exact sensitivities, plus one solve per parameter of
     :data:`physics.FAR_SECANTS` for its secant; :func:`rank` on the recording's residual at ``alpha``.
     Returns (physics, ranking, whitened sensitivities, their column names, FE solves)."""
     bar = bar or _Progress(False)
-    full = ActuatorPhysics(rec, cands, resolution, load_steps, cache, deck=deck)
+    full = ActuatorPhysics(rec, cands, resolution, load_steps, cache, deck=deck, weight=weight)
     far = [p for p in FAR_SECANTS if p in full.names]
     bar.phase("sensitivities of every candidate at the calibrated point"
               + (f", secants of {', '.join(far)}" if far else ""), 1 + len(far))

@@ -76,7 +76,8 @@ def model_floor(sigma: float, resolution: int, deck: DeckModel | None = None, me
 
 
 def discretization_error(rec: Recording, combo, z: dict[str, float], resolution: int, load_steps: int,
-                         cache=None, deck: DeckModel | None = None) -> tuple[np.ndarray | None, dict]:
+                         cache=None, deck: DeckModel | None = None,
+                         weight: str = "before_reference") -> tuple[np.ndarray | None, dict]:
     """The diagnosis model's own discretization error at the parameter point ``z`` (coordinates; the
     names it lacks at their nulls), estimated by one uniform refinement: ``(delta, info)`` with delta
     (K, P, 2) mm = Y at ``resolution + 1`` minus Y at ``resolution``, both the load-level model of the
@@ -96,8 +97,8 @@ def discretization_error(rec: Recording, combo, z: dict[str, float], resolution:
     if deck is not None:
         info["why"] = "the model is the user's deck: no refinement of it is known, the residual is taken as it is"
         return None, info
-    coarse = ActuatorPhysics(rec, combo, resolution, load_steps, cache)
-    fine = ActuatorPhysics(rec, combo, resolution + 1, load_steps, cache)
+    coarse = ActuatorPhysics(rec, combo, resolution, load_steps, cache, weight=weight)
+    fine = ActuatorPhysics(rec, combo, resolution + 1, load_steps, cache, weight=weight)
     point = {**coarse.null_point(math.exp(z["C10"])), **{n: v for n, v in z.items() if n in coarse.names}}
     Y = [phys.observe(point, values_only=True) for phys in (coarse, fine)]
     info["solves"] = sum(0 if ev.reused else 1 for ev in Y)
@@ -171,6 +172,7 @@ class RefitContext:
     taken_out: np.ndarray | None
     bar: _Progress
     tried: list[dict] = field(default_factory=list)
+    weight: str = "before_reference"  # when the gravity candidate's weight acts (actuator.geometry.WEIGHT)
     fits: dict = field(default_factory=dict)
 
 
@@ -179,7 +181,7 @@ def refit(ctx: RefitContext, combo: tuple[str, ...], left: int) -> dict:
     for the progress bar's plan), check the extension and record it in ``ctx.tried``; returns the record."""
     bar, rec, white, fit_frames, held = ctx.bar, ctx.rec, ctx.white, ctx.fit_frames, ctx.held
     bar.phase(f"refitting with {' + '.join(combo)}", left * (bar.FIT_SOLVES + 2))
-    phys = ActuatorPhysics(rec, combo, ctx.resolution, ctx.load_steps, ctx.cache, deck=ctx.deck)
+    phys = ActuatorPhysics(rec, combo, ctx.resolution, ctx.load_steps, ctx.cache, deck=ctx.deck, weight=ctx.weight)
     rows = [next(r for r in ctx.ranking if r["name"] == c) for c in combo]
     free = ["C10"] + [p for r in rows for p in r["tested_parameters"] + r["nuisance_parameters"]]
     added = [p for p in free if p != "C10"]
@@ -224,7 +226,8 @@ def refit(ctx: RefitContext, combo: tuple[str, ...], left: int) -> dict:
         # the MAP and taken out before the surrogate test (docs/diagnosis.md, "The mesh's own error")
         bar.phase(f"estimating the mesh's own error at the refit of {' + '.join(combo)} "
                   f"(one solve at resolution {ctx.resolution + 1})", 2)
-        delta, mesh = discretization_error(rec, combo, ext.z, ctx.resolution, ctx.load_steps, ctx.cache, ctx.deck)
+        delta, mesh = discretization_error(rec, combo, ext.z, ctx.resolution, ctx.load_steps, ctx.cache, ctx.deck,
+                                           ctx.weight)
         bar.tick(2)
         if delta is not None:
             # the base fit's estimate is out of the recording already (noise below the floor)

@@ -20,7 +20,8 @@ ranking                   one row per candidate tested, most significant first (
 not_testable              candidate -> why this recording cannot test it
 not_available             candidate -> why the model (a deck) cannot carry it
 model                     {"kind": "actuator", "resolution"} or {"kind": "deck", "path", "camera",
-                          "face", "digest"}
+                          "face", "digest"}, and "weight": when the gravity candidate's weight acts,
+                          "before_reference" (before the reference image) or "with_load"
 tried                     one entry per refit (below)
 decision                  "none", "unexplained", a candidate, or candidates the data cannot tell apart
                           joined by "|"
@@ -103,7 +104,8 @@ class Diagnosis:
     @classmethod
     def of(cls, rec: Recording, nm, base, where: dict, loop: dict, ranking: list, not_testable: dict,
            not_available: dict, deck, resolution: int, load_steps: int, tried: list, verdict, base_report: dict,
-           ranking_solves: int, seconds: float, held: np.ndarray, alpha: float) -> "Diagnosis":
+           ranking_solves: int, seconds: float, held: np.ndarray, alpha: float,
+           weight: str = "before_reference") -> "Diagnosis":
         """The record of a diagnosis from its steps' outcomes (:mod:`torchfra.diagnosis.pipeline`)."""
         accepted = verdict.accepted
         decision = verdict.decision
@@ -127,9 +129,9 @@ class Diagnosis:
             ranking=ranking,
             not_testable=not_testable,
             not_available=not_available,
-            model=({"kind": "actuator", "resolution": resolution} if deck is None else
-                   {"kind": "deck", "path": str(deck.path), "camera": deck.camera, "face": deck.face,
-                    "digest": base.phys.deck_digest}),
+            model={**({"kind": "actuator", "resolution": resolution} if deck is None else
+                      {"kind": "deck", "path": str(deck.path), "camera": deck.camera, "face": deck.face,
+                       "digest": base.phys.deck_digest}), "weight": weight},
             tried=tried,
             decision=decision,
             missing_physics=({"kind": "candidate", "name": decision} if decision not in ("none", "unexplained") else

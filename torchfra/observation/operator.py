@@ -292,7 +292,8 @@ class ObservationOperator:
     point_ids: (P,) ids used in messages and recordings; default the node ids for ``"nodes"``,
         0..P-1 otherwise.
     components: observed displacement components, default (1, 2) = y and z (paper §4).
-    tol: farthest (mm) a given point may lie from the faces; a point farther off raises.
+    tol: farthest (mm) a given point may lie from the faces; a point farther off raises (``np.inf``: none
+        does, for points seen on a settled body, :class:`SettledPoints`).
 
     Attributes: ``points`` (P, 3) mm, ``point_ids`` (P,), ``face`` (P,) row of ``faces`` holding each
     point, ``st`` (P, 2) its natural coordinates there, ``node_index``/``node_weight`` (P, m) the
@@ -309,6 +310,7 @@ class ObservationOperator:
             raise ObservationError(f"components must be displacement components in 0..2, got {components}")
         self.n_nodes = mesh.n_nodes
         face_nodes = _face_nodes(mesh, self.faces)
+        self.face_nodes = face_nodes
         Xf = mesh.nodes[face_nodes]
         if isinstance(points, str):
             if points != "nodes":
@@ -452,3 +454,65 @@ def interpolate_in_time(times_src, values, times_dst, axis: int = 1, atol: float
     else:
         lo, hi, w = np.take(values, lo_idx, axis=axis), np.take(values, hi_idx, axis=axis), w.reshape(shape)
     return (1 - w) * lo + w * hi
+
+
+# -- a reference state that moves: points seen on the settled body ------------------------------------
+
+class SettledPoints:
+    """A recording's points located on the settled body of a model with preloads (the sagged body of a
+    DIC reference image), and what they see of its displacements from that state.
+
+    The points' coordinates are those of the reference image: positions on the body settled under its
+    weight, ``X + u_ref``. Each is located on the operator's faces in that state by its observed
+    components (``x(s, t)[c] = point[c]``, Newton on the face's natural coordinates from the closest
+    point), so the material point behind it moves with the parameters that move ``u_ref``; the
+    observations are ``u - u_ref`` there.
+
+    op: the operator whose faces and components are used (built on the mesh's own coordinates);
+    nodes: (n_nodes, 3) the settled coordinates ``X + u_ref``; points: (P, 3) the recording's points.
+    Attributes: ``face``, ``st``, ``N`` (P, 8) face shape functions, ``dN`` (P, 8, 2), ``index`` (P, 8)
+    node ids, ``A`` (P, 2, 2) the observed components' ``dx/d(s, t)``, ``offset`` (P,) the largest
+    natural coordinate beyond the face (> 0: the point lies beside its face, by extrapolation).
+    """
+
+    def __init__(self, op: ObservationOperator, nodes: np.ndarray, points: np.ndarray, iterations: int = 30):
+        self.components = op.components
+        self.n_nodes = op.n_nodes
+        face_nodes = op.face_nodes
+        Xf = np.asarray(nodes, dtype=np.float64)[face_nodes]
+        points = np.asarray(points, dtype=np.float64)
+        face, st, _ = _locate(Xf, points, np.inf)
+        c = list(self.components[:2])
+        Xp = Xf[face]
+        for _ in range(iterations):
+            _, x, J = _face_map(Xp, st)
+            A = J[:, c, :]
+            step = np.linalg.solve(A, (points[:, c] - x[:, c])[..., None])[..., 0]
+            st = st + step
+            if np.abs(step).max(initial=0.0) < 1e-13:
+                break
+        self.face, self.st = face, st
+        self.N, dN = quad8_shape(st)
+        self.dN = dN
+        self.index = face_nodes[face]
+        self.A = np.einsum("pak,pai->pik", dN, Xp)[:, c, :]
+        self.offset = np.abs(st).max(axis=1) - 1.0
+        self.points = points
+
+    def observe(self, field: np.ndarray) -> np.ndarray:
+        """(S, n, 3, ...) nodal fields -> (S, P, len(components), ...) at the points."""
+        f = np.asarray(field)[:, : self.n_nodes][:, :, list(self.components)]
+        return np.einsum("pa,spac...->spc...", self.N, f[:, self.index])
+
+    def moving_term(self, u_rel: np.ndarray, du_ref: np.ndarray) -> np.ndarray:
+        """The part of ``d(observations)/dz`` that comes from the points' material positions moving with
+        the reference state: ``d/d(s,t)[N_a u_rel_a] . d(s,t)/dz`` with ``d(s,t)/dz = -A^-1 N_a du_ref_a``.
+
+        u_rel: (S, n, 3) displacements from the reference state; du_ref: (n, 3, d) its sensitivities.
+        Returns (S, P, len(components), d)."""
+        c = list(self.components[:2])
+        g = np.einsum("pa,pacd->pcd", self.N, du_ref[: self.n_nodes][self.index][:, :, c])
+        dst = -np.linalg.solve(self.A, g)  # (P, 2, d)
+        f = np.asarray(u_rel)[:, : self.n_nodes][:, :, list(self.components)]
+        G = np.einsum("pak,spac->spck", self.dN, f[:, self.index])
+        return np.einsum("spck,pkd->spcd", G, dst)

@@ -43,7 +43,7 @@ effect               knob (unit)         sizes 1, 2, 3           SNR at res 1
 mooney_rivlin        C01 (MPa)           7e-05, 2e-04, 7e-04     5.3, 14.8, 47.4
 compressibility      k = 1/(D1 C10)      30, 8, 3                5.7, 17.5, 27.3
 fiber_stiffness      E_fiber (MPa)       250, 60, 25             4.8, 19.4, 50.4
-gravity              density (t/mm^3)    1.2e-11, 3e-11, 1e-10   5.6, 13.9, 46.1
+gravity              density (t/mm^3)    3.5e-11, 1e-10, 4e-10   5.2, 14.0, 50.5
 compliant_base       c (mm^3/N)          1000, 2500, 25000       2.0, 2.6, 3.0
 pressure_sensor      offset (MPa)        1.5e-4, 5e-4, 1.5e-3    4.9, 16.5, 50.0
 cavity_offset        delta_y (mm)        -0.25, -0.5, -1.0       6.8, 14.6, 33.2
@@ -62,7 +62,8 @@ below ~21 while the stretch is local (12 mm gave 6.1, 4 mm 0.14); a debonded mod
 instead of 31 MPa ballooned the cavity (no convergence past 49 % load).
 ``cavity_offset`` is capped by the wall: +0.5 mm (half the 1 mm wall) gave 12.7, so the sizes move
 the cavity toward the centre (SNR measured by ``studies/cavity_offset.py``).
-Gravity matters far below a silicone's density (1.1e-9 t/mm^3 would give SNR ~200): the body is soft.
+Gravity acts before the reference image (the recording sees the pressure's displacements from the sagged body): a
+silicone's density 1.1e-9 t/mm^3 gives SNR 95.8 (studies/gravity_reference.py): the body is soft.
 Spot checks at the generation resolution 2 (15.7k dofs, ~75 s per solve): gravity size 2 gave 14.1,
 fiber_debond size 3 gave 20.9.
 
@@ -99,8 +100,9 @@ from torchfra.scenarios.generate import (
                                          make_scenario,
                                          observation_noise,
                                          pressure_trace,
+                                         reference_points,
 )
 
 __all__ = ["CALCULIX_EFFECTS", "EFFECTS", "Effect", "GENERATORS", "PRESSURE_MAX", "VISCO_TAU1", "check_generator",
-           "clean_observations", "dic_grid", "elastic_frames", "face_observer", "is_correct", "knob_value",
+           "clean_observations", "dic_grid", "elastic_frames", "face_observer", "reference_points", "is_correct", "knob_value",
            "make_scenario", "observation_noise", "pressure_trace"]

@@ -33,9 +33,11 @@ def check_generator(effect: str, generator: str) -> None:
 
 
 def _calculix_displacements(model, values: dict, lam: np.ndarray, n_nodes: int, deck_dir: Path, title: str
-                            ) -> np.ndarray:
+                            ) -> tuple[np.ndarray, np.ndarray | None]:
     """CalculiX's displacements (K, n_nodes, 3) of the deck of ``model`` at ``values`` (name -> number)
-    through the load factors ``lam`` (K,), one increment each, written and run in ``deck_dir``."""
+    through the load factors ``lam`` (K,), one increment each, written and run in ``deck_dir``, and the
+    reference state (n_nodes, 3) the first step settles a weight acting before the load path into
+    (None without one). All are measured from the unloaded body."""
     from torchfra.io.abaqus.write import CalculixError, dat_blocks, run_calculix, write_inp
 
     deck_dir.mkdir(parents=True, exist_ok=True)
@@ -52,14 +54,21 @@ def _calculix_displacements(model, values: dict, lam: np.ndarray, n_nodes: int, 
                             "choose a lower --pressure (its C3D20R bricks stop near 60 % of 0.022 MPa at "
                             "resolution 2)") from exc
     blocks = dat_blocks(deck.with_suffix(".dat"))
-    times = np.array([t for t, _ in blocks])
+    U_ref, start = None, 0.0
+    if model.has_preload:  # step 1 settles the weight (total time 0..1); the trace's step follows it
+        first = [b for t, b in blocks if t <= 1.0 + 1e-9]
+        if not first:
+            raise CalculixError(f"CalculiX printed no reference state (end of step 1) in {deck}")
+        U_ref = np.stack([first[-1][i] for i in range(n_nodes)])
+        blocks, start = blocks[len(first):], 1.0
+    times = np.array([t for t, _ in blocks]) - start
     K = lam.size
     U = np.full((K, n_nodes, 3), np.nan)
     for k in range(K):
-        j = int(np.argmin(np.abs(times - (k + 1) / K)))
-        if abs(times[j] - (k + 1) / K) > 1e-6:
+        j = int(np.argmin(np.abs(times - (k + 1) / K))) if times.size else 0
+        if not times.size or abs(times[j] - (k + 1) / K) > 1e-6:
             raise CalculixError(f"CalculiX printed no displacements at step time {(k + 1) / K:g} (frame {k}) of {deck}")
         block = blocks[j][1]
         U[k] = np.stack([block[i] for i in range(n_nodes)])
-    return U
+    return U, U_ref
 

@@ -53,6 +53,10 @@ class Effect:
         return {"null": "none", "outside": "unexplained"}.get(self.kind, self.name)
 
 
+# gravity's SNR at resolution 1 with the weight before the reference image, against the base model seen
+# at the recording's points (studies/gravity_reference.py, studies/results/study_gravity_reference.json)
+SNR_GRAVITY = (5.17, 14.04, 50.52)
+
 EFFECTS = {e.name: e for e in (
     Effect("none", "null", "-", "-", 0.0, 0.0, 0.0, (), ()),
     Effect("mooney_rivlin", "library", "C01", "MPa", 0.0, 0.0, math.inf,
@@ -61,7 +65,7 @@ EFFECTS = {e.name: e for e in (
            (30.0, 8.0, 3.0), (5.65, 17.48, 27.27)),
     Effect("fiber_stiffness", "library", "E_fiber", "MPa", E_FIBER, 1e-3, math.inf,
            (250.0, 60.0, 25.0), (4.78, 19.38, 50.43)),
-    Effect("gravity", "library", "density", "t/mm^3", 0.0, 0.0, 2.5e-8, (1.2e-11, 3e-11, 1e-10), (5.57, 13.91, 46.1)),
+    Effect("gravity", "library", "density", "t/mm^3", 0.0, 0.0, 2.5e-8, (3.5e-11, 1e-10, 4e-10), SNR_GRAVITY),
     Effect("compliant_base", "library", "c", "mm^3/N", 0.0, 0.0, math.inf,
            (1000.0, 2500.0, 25000.0), (2.04, 2.55, 2.98)),
     Effect("pressure_sensor", "library", "pressure_offset", "MPa", 0.0, 0.0, PRESSURE_MAX,

@@ -82,20 +82,34 @@ def face_observer(mesh, spacing: float) -> ObservationOperator:
     return ObservationOperator(mesh, visible_faces(mesh, (1.0, 0.0, 0.0)), points=dic_grid(mesh, spacing))
 
 
+def reference_points(op: ObservationOperator, u_ref) -> np.ndarray:
+    """Where the observer's points lie in the reference image (P, 3) mm: their positions on the body
+    settled under its weight, ``X + u_ref`` (``u_ref``: (n_nodes, 3) or None for an unloaded reference)."""
+    if u_ref is None:
+        return op.points
+    return op.points + op.weights @ np.asarray(u_ref)[: op.n_nodes]
+
+
 def elastic_frames(model, params, lam: np.ndarray, options, op, progress=False):
     """The elastic body observed by ``op`` at the frames' load factors ``lam`` (K,): one FE solve
     through the distinct positive levels, no displacement at a frame whose level is 0. Returns
-    (observations (K, P, 2) of the first member, the solve); the caller checks its status."""
+    (observations (K, P, 2) of the first member, the solve); the caller checks its status.
+    A model whose weight acts before the reference image is observed from its settled state
+    (``sol.u_reference``), as DIC measures it; its points then lie at :func:`reference_points`."""
     distinct = np.unique(lam[lam > 0])
     sol = fem.solve(model, params, distinct, options, progress=progress)
-    Y = op(sol.u[0, :, : model.mesh.n_nodes]).numpy()  # (distinct, P, 2)
+    u = sol.u[0, :, : model.mesh.n_nodes]
+    if sol.u_reference is not None:
+        u = u - sol.u_reference[0, : model.mesh.n_nodes]
+    Y = op(u).numpy()  # (distinct, P, 2)
     frames = np.zeros((lam.size,) + Y.shape[1:])
     pos = lam > 0
     frames[pos] = Y[np.searchsorted(distinct, lam[pos])]
     return frames, sol
 
 
-def _clean_key(effect, value, c10, resolution, spacing, frames, trace, pressure, generator="torchfra") -> dict:
+def _clean_key(effect, value, c10, resolution, spacing, frames, trace, pressure, generator="torchfra",
+               points=None) -> dict:
     if value == EFFECTS[effect].null:  # an effect at its null is the base model: share its cache
         effect, value = "none", 0.0
     return {"effect": effect, "value": float(value), "c10": float(c10), "resolution": int(resolution),
@@ -103,19 +117,25 @@ def _clean_key(effect, value, c10, resolution, spacing, frames, trace, pressure,
             "grid_shift": list(GRID_SHIFT), "bulk_ratio": BULK_RATIO, "E_fiber": E_FIBER,
             "stagnation_tol": 1e-6, "version": CACHE_VERSION,
             **({"history": "fe_prony", "tau1": VISCO_TAU1} if effect == "viscoelasticity" else {}),
+            **({"weight": "before_reference"} if effect == "gravity" else {}),
+            **({"points": hashlib.sha256(np.ascontiguousarray(points, dtype=np.float64).tobytes()).hexdigest()[:16]}
+               if points is not None else {}),
             **({"generator": "calculix", "element": "C3D20R", "fibers": "SPRINGA"} if generator == "calculix" else {})}
 
 
 def clean_observations(effect: str, value: float, c10: float, resolution: int, spacing: float, frames: int,
                        trace: str, pressure: float = PRESSURE_MAX, cache_dir=None,
-                       progress: bool = False, generator: str = "torchfra") -> tuple[dict[str, np.ndarray], int]:
+                       progress: bool = False, generator: str = "torchfra",
+                       points=None) -> tuple[dict[str, np.ndarray], int]:
     """Noise-free observations of the scenario and what made them: arrays ``clean`` (K, P, 2) mm,
-    ``points`` (P, 3) mm, ``times``, ``recorded``, ``true`` (K,) MPa and ``mesh`` (elements, nodes,
+    ``points`` (P, 3) mm (in the reference image: on the body settled under its weight when the
+    scenario has one), ``times``, ``recorded``, ``true`` (K,) MPa and ``mesh`` (elements, nodes,
     dofs of the generating model); returns ``(arrays, solves)`` with
     ``solves`` the FE solves made (0 when read from ``cache_dir``). ``generator``: ``"torchfra"`` or
-    ``"calculix"`` (see the module's docstring)."""
+    ``"calculix"`` (see the module's docstring). ``points``: observe at these (P, 3) mm instead of the
+    DIC grid (located on the face without a tolerance: e.g. another scenario's settled points, for an SNR)."""
     check_generator(effect, generator)
-    key = _clean_key(effect, value, c10, resolution, spacing, frames, trace, pressure, generator)
+    key = _clean_key(effect, value, c10, resolution, spacing, frames, trace, pressure, generator, points)
     text = json.dumps(key, sort_keys=True)
     digest = hashlib.sha256(text.encode()).hexdigest()[:16]
     path = None
@@ -135,7 +155,9 @@ def clean_observations(effect: str, value: float, c10: float, resolution: int, s
     model, info = (build_actuator_model(ActuatorGeometry(resolution=resolution), **model_kw) if effect == "none"
                    else build_model(effect, value, resolution, **model_kw))
     mesh = info["mesh"]
-    op = face_observer(mesh, spacing)
+    op = face_observer(mesh, spacing) if points is None else ObservationOperator(
+        mesh, visible_faces(mesh, (1.0, 0.0, 0.0)), points=points, tol=np.inf)
+    seen_at = op.points
     P_load = float(p_true.max())
     params = {k: torch.tensor([v], dtype=torch.float64)
               for k, v in {**model_parameters(effect, value, c10), "P": P_load}.items()}
@@ -157,18 +179,23 @@ def clean_observations(effect: str, value: float, c10: float, resolution: int, s
         scratch = None if cache_dir is not None else Path(tempfile.mkdtemp(prefix="torchfra_calculix_"))
         deck_dir = (Path(cache_dir) if scratch is None else scratch) / "calculix" / f"{key['effect']}_{digest}"
         values = {k: float(v[0]) for k, v in params.items()}
-        U = _calculix_displacements(model, values, lam, mesh.n_nodes, deck_dir,
-                                    f"torchfra scenario {effect} = {value:g}, C10 = {c10:g} MPa, resolution {resolution}")
+        U, U_ref = _calculix_displacements(model, values, lam, mesh.n_nodes, deck_dir,
+                                           f"torchfra scenario {effect} = {value:g}, C10 = {c10:g} MPa, "
+                                           f"resolution {resolution}")
         if scratch is not None:
             shutil.rmtree(scratch, ignore_errors=True)
-        clean = op(torch.as_tensor(U)).numpy()
+        clean = op(torch.as_tensor(U if U_ref is None else U - U_ref)).numpy()
+        if points is None:
+            seen_at = reference_points(op, U_ref)
     else:
         clean, sol = elastic_frames(model, params, lam, options, op, progress)
         if sol.status[0] != "converged":
             raise RuntimeError(f"scenario {effect} at {value:g} did not converge (C10 = {c10}, resolution "
                                f"{resolution}, reached {sol.load_reached[0]:.3f} of {P_load:g} MPa); choose a "
                                "smaller size")
-    arrays = {"clean": clean, "points": op.points, "times": times, "recorded": recorded, "true": p_true,
+        if points is None:
+            seen_at = reference_points(op, None if sol.u_reference is None else sol.u_reference[0].numpy())
+    arrays = {"clean": clean, "points": seen_at, "times": times, "recorded": recorded, "true": p_true,
               "mesh": np.array([mesh.n_elements, mesh.n_nodes, info["dofs"]])}
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -239,7 +266,9 @@ def make_scenario(effect: str, size, truth_c10: float = 0.0062, noise: float = 1
     if value == e.null:
         snr = 0.0
     else:
-        null, more = clean_observations("none", 0.0, **setting)
+        # the base model seen where the recording's points are (a weight's settled points need not be the grid's)
+        null, more = clean_observations("none", 0.0, **setting,
+                                        points=None if effect != "gravity" else arrays["points"])
         solves += more
         snr = float(np.linalg.norm(arrays["clean"] - null["clean"]) / noise)
     clean, points = arrays["clean"], arrays["points"]
