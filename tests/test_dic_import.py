@@ -417,7 +417,7 @@ def test_diagnose_and_calibrate_take_a_dic_export_directly(tmp_path, monkeypatch
         seen["diagnose"] = rec
         raise SystemExit(0)
 
-    monkeypatch.setattr(diagnose_script, "diagnose", fake_diagnose)
+    monkeypatch.setattr("torchfra.diagnosis.pipeline.diagnose", fake_diagnose)  # the command imports it when run
     with pytest.raises(SystemExit):
         diagnose_script.main([str(export), "--pressure", str(trace), "--camera-to-model", "identity",
                               "--runs-dir", str(tmp_path / "runs"), "--name", "d"])
@@ -431,7 +431,7 @@ def test_diagnose_and_calibrate_take_a_dic_export_directly(tmp_path, monkeypatch
         seen["calibrate"] = read_recording(config.recording)
         raise SystemExit(0)
 
-    monkeypatch.setattr(calibrate_script, "run_calibration", fake_calibration)
+    monkeypatch.setattr("torchfra.calibration.experiment.run_calibration", fake_calibration)
     with pytest.raises(SystemExit):
         calibrate_script.main(["--recording", str(export), "--pressure", str(trace), "--camera-to-model", "identity",
                                "--runs-dir", str(tmp_path / "runs"), "--name", "c", "--workers", "1"])

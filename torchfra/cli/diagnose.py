@@ -4,7 +4,7 @@ base model, rank the candidate physics by score tests, refit the best and decide
     python scripts/diagnose.py my_dic.csv --noise 1.0 --name my_diag
     python scripts/diagnose.py my_dic.csv --candidates gravity,compliant_base
     python scripts/diagnose.py matchid_exports/ --pressure trace.csv --landmarks corners.csv   # a DIC export
-    python scripts/diagnose.py my_dic.csv --inp my_actuator.inp --camera -x    # your own model (a deck)
+    python scripts/diagnose.py my_dic.csv --inp my_actuator.inp --camera=-x    # your own model (a deck)
 
 writes runs/<name>/: diagnosis.json, residual_map.png, residual_over_time.png, ranking.png,
 observed_vs_models.png, posterior_added.png (when a candidate is accepted), TensorBoard events,
