@@ -13,6 +13,8 @@ from test_report_figures import assert_nothing_clipped, titled
 import torchfra
 from torchfra.calibration.priors import PriorError
 
+pytestmark = pytest.mark.slow  # minutes of FE work each: python -m pytest -m slow runs them
+
 SMALL = dict(members=4, frames=6, pressure=0.004, load_steps=2, restart=False, coverage_seeds=0, degree=2, grid=400)
 
 

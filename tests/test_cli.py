@@ -69,7 +69,10 @@ def test_every_script_is_a_thin_wrapper_of_its_subcommand_and_ends_through_cli_r
         assert len(imports) == 1 and imports[0].split()[1].removeprefix("torchfra.cli.") in modules, path.name
         assert lines[-2:] == ['if __name__ == "__main__":', "run(main)"] and len(lines) <= 6, path.name
     for module in modules:
-        tail = (ROOT / "torchfra" / "cli" / f"{module}.py").read_text().rstrip().splitlines()[-3:]
+        source = ROOT / "torchfra" / "cli" / f"{module}.py"
+        if not source.exists():  # a subcommand that is a package: its command module guards main
+            source = ROOT / "torchfra" / "cli" / module / "command.py"
+        tail = source.read_text().rstrip().splitlines()[-3:]
         assert [line.strip() for line in tail] == ["from torchfra.cli.run import run", "", "run(main)"], module
 
 

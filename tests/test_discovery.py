@@ -754,7 +754,8 @@ def test_diagnose_script_says_what_it_did_below_the_floor(tmp_path, monkeypatch,
     from torchfra.io.recordings import write_recording
 
     script = load_script("diagnose")
-    path = write_recording(tmp_path / "rec.csv", grid_recording(K=6, n=3))
+    moving = np.random.default_rng(0).normal(size=(6, 9, 2))  # a recording that moves (a still one is refused)
+    path = write_recording(tmp_path / "rec.csv", grid_recording(K=6, n=3, Z=moving))
     floor = model_floor(0.05, 1)
     floor["taken_out"] = ({"resolution": 2, "solves": 1, "seconds": 30.0, "rms_mm": 0.0487, "why": None} if estimated
                           else {"resolution": 2, "solves": 0, "seconds": 0.0, "rms_mm": None,
@@ -766,7 +767,7 @@ def test_diagnose_script_says_what_it_did_below_the_floor(tmp_path, monkeypatch,
         Path(run_dir).mkdir(parents=True, exist_ok=True)  # as diagnose() does
         return out
 
-    monkeypatch.setattr(script, "diagnose", fake_diagnose)
+    monkeypatch.setattr("torchfra.diagnosis.pipeline.diagnose", fake_diagnose)  # the command imports it when run
     script.main([str(path), "--runs-dir", str(tmp_path / "runs"), "--name", "d"])
     said = " ".join(capsys.readouterr().out.split())
     if estimated:

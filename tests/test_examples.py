@@ -12,6 +12,8 @@ import pytest
 
 from torchfra.io.recordings import read_recording
 
+pytestmark = pytest.mark.slow  # minutes of FE work each: python -m pytest -m slow runs them
+
 ROOT = Path(__file__).resolve().parents[1]
 
 

@@ -19,6 +19,8 @@ from test_read_inp import HAND_DECK
 from torchfra.calibration.experiment import headline, rounded
 from torchfra.io.recordings import read_recording, write_recording
 
+pytestmark = pytest.mark.slow  # minutes of FE work each: python -m pytest -m slow runs them
+
 ROOT = Path(__file__).resolve().parents[1]
 PRIOR = "C10=lognormal:0.1,0.03"
 

@@ -24,6 +24,8 @@ from torchfra.fem.structured import box_mesh
 from torchfra.io.abaqus.read import read_inp
 from torchfra.io.abaqus.write import write_inp
 
+pytestmark = pytest.mark.slow  # minutes of FE work each: python -m pytest -m slow runs them
+
 LOADS = [0.25, 0.5, 0.75, 1.0]
 TOL = 1e-4  # mm: the reduced-basis check's tolerance (solve_ensemble tol), on displacements of ~1-15 mm
 
@@ -88,7 +90,7 @@ def test_forward_of_a_block_deck_runs_on_the_reduced_basis(tmp_path):
     reduced basis (3 of 8 members) and every member converges."""
     deck = block_deck(tmp_path / "block.inp", (8.0, 4.0, 16.0), (2, 1, 4))
     cmd = [sys.executable, "-m", "torchfra", "forward", "--inp", str(deck), "--param", "C10=lognormal:0.05,0.01",
-           "--members", "8", "--runs-dir", str(tmp_path / "runs"), "--out", "blk", "--quiet"]
+           "--members", "8", "--method", "reduced", "--runs-dir", str(tmp_path / "runs"), "--out", "blk", "--quiet"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr[-3000:]
     summary = json.loads((tmp_path / "runs" / "blk" / "summary.json").read_text())

@@ -11,6 +11,7 @@ final state is the same equilibrium whichever path reaches it) and CalculiX 2.20
 1e-5 relative tolerance of the other CalculiX cross-checks (tests/test_candidates_calculix.py).
 """
 import numpy as np
+import pytest
 import torch
 
 from torchfra import fem
@@ -105,6 +106,7 @@ def test_two_step_deck_matches_calculix(tmp_path):
     assert rel_ref < 1e-5 and rel < 1e-5  # measured 3.3e-7 of 1.31 mm and 6.0e-6 of 5.29 mm
 
 
+@pytest.mark.slow  # minutes of FE work: outside the default run, run by python -m pytest -m slow
 def test_diagnosis_sees_the_weight_from_the_settled_state_with_exact_sensitivities():
     """The diagnosis's gravity candidate with the weight before the reference image: a recording made
     that way (points in the reference image, displacements from the sagged state) is reproduced at the

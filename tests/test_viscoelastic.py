@@ -120,7 +120,7 @@ class _ScalingActuator(ActuatorPhysics):
 
     A = None  # (P, 2) amplitudes, set by the test
 
-    def __init__(self, rec, candidates=(), resolution=1, load_steps=10, cache_dir=None, newton=None, deck=None):
+    def __init__(self, rec, candidates=(), resolution=1, load_steps=10, cache_dir=None, newton=None, deck=None, weight="before_reference"):
         assert deck is None, "the stand-in is the paper's actuator"
         self.deck, self.deck_values, self.deck_digest = None, None, None
         self.rec, self.candidates = rec, tuple(sorted(candidates))

@@ -172,6 +172,14 @@ def solve(
         return _solve_path(model, params, load_factors, options, progress, start)
     params = {k: torch.as_tensor(v, dtype=model.dtype).reshape(-1) for k, v in params.items()}
     N = model.validate(params)
+    with model.settling():  # no member carries a preload (e.g. a density of 0): the path from the unloaded body
+        weightless = not model.evaluate(torch.zeros(N, model.n_red, dtype=model.dtype), params,
+                                        torch.ones(N, dtype=model.dtype)).residual.abs().max() > 0
+    if weightless:
+        sol = _solve_path(model, params, load_factors, options, progress, start)
+        sol.u_reference = torch.zeros(N, model.n_nodes, 3, dtype=model.dtype)
+        sol.a_reference = torch.zeros(N, model.n_red, dtype=model.dtype)
+        return sol
     label = False
     if progress:
         label = "settling under the preloads (weight)" if progress is True else f"{progress}: settling"
